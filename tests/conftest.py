@@ -1,0 +1,146 @@
+"""Shared fixtures.
+
+Import order matters: Blender reads ``BLENDER_USER_RESOURCES`` once, when
+``bpy`` is first imported, so it is set here at import time (pytest imports
+conftest before collecting any test module).  Every test session gets its own
+throw-away user directory: installed extensions, preferences and the wheels'
+site-packages never touch the developer's real Blender set-up, and subprocesses
+started by tests inherit it.
+
+``bpy`` itself is imported lazily inside the fixtures, so tests of the pure
+numerical core (``artdef_addon``) run without paying for it.
+"""
+
+import atexit
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+_USER_DIR = tempfile.mkdtemp(prefix="artdef-blender-user-")
+os.environ["BLENDER_USER_RESOURCES"] = _USER_DIR
+atexit.register(shutil.rmtree, _USER_DIR, ignore_errors=True)
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+EXT_ID = "artdef"
+ADDON_MODULE = f"bl_ext.user_default.{EXT_ID}"
+PLATFORM = "linux-x64"
+
+# Directories and files at the repository root that are not part of the
+# extension (mirror of [build] paths_exclude_pattern): a change in them does
+# not make dist/ stale.
+_NOT_PACKAGED = {
+    ".git", ".venv", ".ci", ".tools", "tests", "benchmarks", "scripts", "dist",
+    "out", "wheels-cache", "node_modules", "docs", "__pycache__", ".pytest_cache",
+}
+
+
+def _manifest_version():
+    import tomllib
+
+    with open(REPO_ROOT / "blender_manifest.toml", "rb") as f:
+        return tomllib.load(f)["version"]
+
+
+def _zip_name():
+    return f"{EXT_ID}-{_manifest_version()}-{PLATFORM.replace('-', '_')}.zip"
+
+
+def _newest_source_mtime():
+    newest = 0.0
+    for dirpath, dirnames, filenames in os.walk(REPO_ROOT):
+        if Path(dirpath) == REPO_ROOT:
+            dirnames[:] = [d for d in dirnames if d not in _NOT_PACKAGED]
+        else:
+            dirnames[:] = [d for d in dirnames if d != "__pycache__"]
+        for name in filenames:
+            if name.endswith((".pyc", ".zip")):
+                continue
+            try:
+                newest = max(newest, os.stat(os.path.join(dirpath, name)).st_mtime)
+            except FileNotFoundError:  # another engineer's editor swap file
+                pass
+    return newest
+
+
+def build_extension(out_dir):
+    """Run scripts/build_extension.sh into out_dir; return the linux-x64 zip."""
+    env = dict(os.environ, ARTDEF_DIST=str(out_dir), PYTHON=sys.executable)
+    proc = subprocess.run(
+        ["bash", str(REPO_ROOT / "scripts" / "build_extension.sh")],
+        cwd=REPO_ROOT, env=env, capture_output=True, text=True,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(
+            f"build_extension.sh failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+    zip_path = Path(out_dir) / _zip_name()
+    assert zip_path.is_file(), f"builder did not write {zip_path}:\n{proc.stdout}"
+    return zip_path
+
+
+@pytest.fixture(scope="session")
+def blender_user_dir():
+    """The session's private BLENDER_USER_RESOURCES directory."""
+    return Path(_USER_DIR)
+
+
+@pytest.fixture(scope="session")
+def extension_zip(tmp_path_factory):
+    """The linux-x64 extension zip: dist/'s if newer than every packaged file,
+    otherwise freshly built into a private directory (dist/ is shared with
+    other engineers' concurrent runs, so it is not rewritten here)."""
+    zip_path = REPO_ROOT / "dist" / _zip_name()
+    if zip_path.is_file() and zip_path.stat().st_mtime >= _newest_source_mtime():
+        return zip_path
+    return build_extension(tmp_path_factory.mktemp("dist"))
+
+
+def _addon_enabled(module_name):
+    import addon_utils
+    import bpy
+
+    return (module_name in bpy.context.preferences.addons
+            and addon_utils.check(module_name)[1])
+
+
+def _enable_addon(module_name):
+    import addon_utils
+
+    errors = []
+    addon_utils.enable(module_name, default_set=True,
+                       handle_error=lambda ex: errors.append(ex))
+    if errors:
+        raise errors[0]
+
+
+@pytest.fixture(scope="session")
+def installed_addon(extension_zip):
+    """Install the built zip into the session's user_default repository the
+    way a user would (Preferences > Get Extensions > Install from Disk) and
+    yield the add-on's module name, ``bl_ext.user_default.artdef``."""
+    import bpy
+
+    result = bpy.ops.extensions.package_install_files(
+        filepath=str(extension_zip), repo="user_default", enable_on_install=True)
+    # The operator reports FINISHED even when nothing was installed: check.
+    assert result == {"FINISHED"}, result
+    if not _addon_enabled(ADDON_MODULE):
+        _enable_addon(ADDON_MODULE)
+    assert _addon_enabled(ADDON_MODULE), f"{ADDON_MODULE} is not enabled after install"
+    yield ADDON_MODULE
+
+
+@pytest.fixture
+def clean_scene(installed_addon):
+    """A fresh, empty scene with the add-on still registered."""
+    import bpy
+
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    if not _addon_enabled(installed_addon):
+        _enable_addon(installed_addon)
+    assert _addon_enabled(installed_addon)
+    yield bpy.context.scene
