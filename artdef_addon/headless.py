@@ -1,0 +1,446 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Headless glue for ``python -m artdef_addon fit ... --blend/--glb/--png``.
+
+The command line builds the rig through the *same operators as the UI*
+(``bpy.ops.artdef.import_scan`` then ``bpy.ops.artdef.fit``) in a fresh scene,
+then writes any of: the .blend, a glTF binary made by Blender's own exporter
+(skinned mesh, morph targets, animation) and a Workbench render.
+
+Works with the ``bpy`` module (``pip install bpy``) and inside Blender
+(``blender -b -P scripts/artdef_fit.py -- fit ...``).  ``bpy`` is imported
+only inside the functions, so the rest of ``artdef_addon`` stays bpy-free.
+"""
+from __future__ import annotations
+
+import atexit
+import os
+import shutil
+import tempfile
+
+NEED_BPY = ("--blend/--glb need Blender: run inside "
+            "`blender -b -P scripts/artdef_fit.py -- ...` or install the bpy module")
+
+EXT_ID = "artdef"
+_HEADLESS_REPO = "artdef_headless"  # module name of the temporary extension repository
+
+# Render-only helper objects (bone sticks) carry this custom property, so they
+# can be found and removed again.
+_RENDER_TAG = "artdef_render_helper"
+
+
+def _bpy():
+    try:
+        import bpy  # noqa: PLC0415 (lazy on purpose)
+    except ImportError as ex:
+        raise RuntimeError(NEED_BPY) from ex
+    return bpy
+
+
+# --------------------------------------------------------------------------
+# Registration
+# --------------------------------------------------------------------------
+
+def _operators_registered(bpy) -> bool:
+    # hasattr() is always True on bpy.ops sub-modules; dir() lists only
+    # the operators that are registered.
+    names = dir(bpy.ops.artdef)
+    return "import_scan" in names and "fit" in names
+
+
+def _source_root() -> str | None:
+    """The extension's root (directory holding blender_manifest.toml), i.e.
+    the repository root or an installed copy of the extension."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if os.path.isfile(os.path.join(root, "blender_manifest.toml")) and \
+            os.path.isfile(os.path.join(root, "__init__.py")):
+        return root
+    return None
+
+
+def _enable(module_name: str) -> None:
+    import addon_utils  # noqa: PLC0415
+
+    errors = []
+    addon_utils.enable(module_name, default_set=True, handle_error=errors.append)
+    if errors:
+        raise RuntimeError(f"enabling {module_name} failed: {errors[0]}") from errors[0]
+
+
+def _scipy_importable() -> bool:
+    try:
+        import scipy  # noqa: F401, PLC0415
+    except ImportError:
+        return False
+    return True
+
+
+def ensure_registered() -> str:
+    """Make sure ``bpy.ops.artdef.*`` exist; return the add-on module name.
+
+    1. Already registered (add-on enabled in Blender's preferences): nothing to do.
+    2. We are running from an installed copy of the extension
+       (``bl_ext.<repo>.artdef.artdef_addon``): enable that copy.
+    3. Otherwise register this source tree as an extension: symlink it as
+       ``<tmp>/artdef`` into a temporary user repository and enable
+       ``bl_ext.artdef_headless.artdef``.  The operators, the manifest and the
+       wheels are then exactly those of the checkout being run.
+    """
+    bpy = _bpy()
+    import addon_utils  # noqa: PLC0415
+
+    if _operators_registered(bpy):
+        for name in bpy.context.preferences.addons.keys():
+            if name == EXT_ID or name.endswith("." + EXT_ID):
+                return name
+        return EXT_ID
+
+    pkg = __package__ or ""
+    if pkg.startswith("bl_ext.") and pkg.count(".") >= 3:
+        module_name = pkg.rsplit(".", 1)[0]  # bl_ext.<repo>.artdef
+        _enable(module_name)
+        if _operators_registered(bpy):
+            return module_name
+
+    root = _source_root()
+    if root is None:
+        raise RuntimeError("cannot find the artdef extension: bpy.ops.artdef is not registered "
+                           "and no blender_manifest.toml is next to artdef_addon/")
+    module_name = f"bl_ext.{_HEADLESS_REPO}.{EXT_ID}"
+    repos = bpy.context.preferences.extensions.repos
+    repo = next((r for r in repos if r.module == _HEADLESS_REPO), None)
+    if repo is None:
+        repo_dir = tempfile.mkdtemp(prefix="artdef-headless-repo-")
+        link = os.path.join(repo_dir, EXT_ID)
+        os.symlink(root, link, target_is_directory=True)
+
+        def _cleanup(repo_dir=repo_dir, link=link):
+            try:
+                os.unlink(link)
+            except OSError:
+                pass
+            shutil.rmtree(repo_dir, ignore_errors=True)
+        atexit.register(_cleanup)
+        repos.new(name="ArtDef (headless)", module=_HEADLESS_REPO,
+                  custom_directory=repo_dir, source='USER')
+    # Install the bundled wheels only when this Python has no scipy of its own
+    # (plain Blender); the bpy module's venv normally has it already, and the
+    # wheels/ folder may not even be downloaded in a fresh checkout.
+    errors = []
+    addon_utils.extensions_refresh(ensure_wheels=not _scipy_importable(),
+                                   addon_modules_pending=[module_name],
+                                   handle_error=errors.append)
+    _enable(module_name)
+    if not _operators_registered(bpy):
+        detail = f" ({errors[0]})" if errors else ""
+        raise RuntimeError(f"{module_name} is enabled but bpy.ops.artdef.import_scan/fit "
+                           f"are not registered{detail}")
+    return module_name
+
+
+# --------------------------------------------------------------------------
+# Scene helpers
+# --------------------------------------------------------------------------
+
+def _find_armature(mesh):
+    arm = mesh.find_armature()
+    if arm is not None:
+        return arm
+    if mesh.parent is not None and mesh.parent.type == 'ARMATURE':
+        return mesh.parent
+    for mod in mesh.modifiers:
+        if mod.type == 'ARMATURE' and mod.object is not None:
+            return mod.object
+    return None
+
+
+def _parent_keep_transform(child, parent):
+    """Parent ``child`` to ``parent`` (object parenting), keeping its world
+    transform.  Blender's glTF exporter bakes driven shape keys into morph
+    weight animation only for a mesh parented to its armature."""
+    if child.parent == parent:
+        return
+    world = child.matrix_world.copy()
+    child.parent = parent
+    child.parent_type = 'OBJECT'
+    child.matrix_parent_inverse = parent.matrix_world.inverted()
+    child.matrix_world = world
+
+
+def _abs(path: str) -> str:
+    path = os.path.abspath(path)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    return path
+
+
+def save_blend(path: str) -> str:
+    bpy = _bpy()
+    path = _abs(path)
+    bpy.ops.wm.save_as_mainfile(filepath=path, check_existing=False)
+    return path
+
+
+def export_glb(path: str, mesh, armature) -> str:
+    """Skinned mesh (one joint per deforming bone, inverse bind matrices),
+    shape keys as morph targets, and the scene's animation, as .glb."""
+    bpy = _bpy()
+    path = _abs(path)
+    if armature is not None:
+        _parent_keep_transform(mesh, armature)
+    with bpy.context.temp_override(active_object=mesh, object=mesh,
+                                   selected_objects=[o for o in (mesh, armature) if o]):
+        bpy.ops.export_scene.gltf(
+            filepath=path,
+            check_existing=False,
+            export_format='GLB',
+            use_selection=False,
+            export_yup=True,
+            export_apply=False,            # keep the skin: no modifier baking
+            export_skins=True,
+            export_def_bones=True,         # joints = deforming bones = links
+            export_rest_position_armature=True,
+            export_armature_object_remove=True,  # validator: no NODE_SKINNED_MESH_NON_ROOT
+            export_morph=True,
+            export_morph_normal=True,
+            export_morph_animation=True,
+            export_animations=True,
+            export_force_sampling=True,    # drivers -> sampled morph weights
+            export_animation_mode='ACTIONS',
+            export_vertex_color='ACTIVE',  # link colours as COLOR_0
+            export_cameras=False,
+            export_lights=False,
+            export_extras=False,
+        )
+    if not os.path.isfile(path):
+        raise RuntimeError(f"glTF exporter wrote nothing to {path}")
+    return path
+
+
+# --------------------------------------------------------------------------
+# Render
+# --------------------------------------------------------------------------
+
+def _octahedral_bone_mesh(bpy, name, head, tail, width, color, attr_name):
+    """A Blender-style octahedral bone from head to tail (world space)."""
+    from mathutils import Vector  # noqa: PLC0415
+
+    head, tail = Vector(head), Vector(tail)
+    axis = tail - head
+    length = axis.length
+    if length < 1e-9:
+        return None
+    d = axis / length
+    helper = Vector((0, 0, 1)) if abs(d.z) < 0.9 else Vector((1, 0, 0))
+    u = d.cross(helper).normalized()
+    v = d.cross(u).normalized()
+    r = width
+    mid = head + d * (0.15 * length)
+    verts = [head, mid + u * r, mid + v * r, mid - u * r, mid - v * r, tail]
+    faces = [(0, 2, 1), (0, 3, 2), (0, 4, 3), (0, 1, 4),
+             (5, 1, 2), (5, 2, 3), (5, 3, 4), (5, 4, 1)]
+    me = bpy.data.meshes.new(name)
+    me.from_pydata([tuple(p) for p in verts], [], faces)
+    me.update()
+    _fill_color_attribute(me, attr_name, color)
+    ob = bpy.data.objects.new(name, me)
+    ob[_RENDER_TAG] = True
+    ob.show_in_front = True
+    return ob
+
+
+def _joint_ball(bpy, name, center, radius, color, attr_name):
+    import bmesh  # noqa: PLC0415
+
+    me = bpy.data.meshes.new(name)
+    bm = bmesh.new()
+    bmesh.ops.create_uvsphere(bm, u_segments=16, v_segments=8, radius=radius)
+    bm.to_mesh(me)
+    bm.free()
+    _fill_color_attribute(me, attr_name, color)
+    ob = bpy.data.objects.new(name, me)
+    ob.location = center
+    ob[_RENDER_TAG] = True
+    ob.show_in_front = True
+    return ob
+
+
+def _fill_color_attribute(me, attr_name, color):
+    attr = me.color_attributes.new(attr_name or "Color", 'FLOAT_COLOR', 'POINT')
+    if attr is None:  # name too long (see BLENDER_FACTS): fall back
+        attr = me.color_attributes.new("Color", 'FLOAT_COLOR', 'POINT')
+    attr.data.foreach_set("color", list(color) * len(me.vertices))
+    me.color_attributes.active_color = attr
+    me.color_attributes.render_color_index = me.color_attributes.active_color_index
+
+
+def _bounds_world(obj, depsgraph):
+    from mathutils import Vector  # noqa: PLC0415
+
+    ev = obj.evaluated_get(depsgraph)
+    me = ev.to_mesh()
+    try:
+        mw = ev.matrix_world
+        pts = [mw @ v.co for v in me.vertices]
+    finally:
+        ev.to_mesh_clear()
+    if not pts:
+        return Vector((0, 0, 0)), Vector((0, 0, 0)), []
+    lo = Vector((min(p.x for p in pts), min(p.y for p in pts), min(p.z for p in pts)))
+    hi = Vector((max(p.x for p in pts), max(p.y for p in pts), max(p.z for p in pts)))
+    return lo, hi, pts
+
+
+def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
+    """Workbench render of the rest pose: mesh coloured by its active colour
+    attribute (the fit's link colours), bones drawn as octahedral sticks in
+    front of it (armatures themselves are overlays, not rendered)."""
+    bpy = _bpy()
+    from mathutils import Vector  # noqa: PLC0415
+
+    path = _abs(path)
+    scene = bpy.context.scene
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    frame_before = scene.frame_current
+    scene.frame_set(scene.frame_start)
+
+    mesh_colors = mesh.data.color_attributes
+    if mesh_colors.active_color is None and len(mesh_colors):
+        mesh_colors.active_color_index = 0
+    attr_name = mesh_colors.active_color.name if mesh_colors.active_color else None
+
+    helpers = []
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    lo, hi, pts = _bounds_world(mesh, depsgraph)
+    size = max((hi - lo).length, 1e-6)
+    if armature is not None:
+        mw = armature.matrix_world
+        bone_pts = []
+        for bone in armature.data.bones:
+            head, tail = mw @ bone.head_local, mw @ bone.tail_local
+            bone_pts += [head, tail]
+            ob = _octahedral_bone_mesh(bpy, f"_artdef_bone_{bone.name}", head, tail,
+                                       width=0.06 * (tail - head).length,
+                                       color=(0.05, 0.05, 0.05, 1.0), attr_name=attr_name)
+            if ob is not None:
+                helpers.append(ob)
+            helpers.append(_joint_ball(bpy, f"_artdef_joint_{bone.name}", head, 0.015 * size,
+                                       (0.95, 0.95, 0.95, 1.0), attr_name))
+        pts = pts + bone_pts
+
+    cam_data = bpy.data.cameras.new("_artdef_render_camera")
+    cam_data.type = 'ORTHO'
+    cam = bpy.data.objects.new("_artdef_render_camera", cam_data)
+    cam[_RENDER_TAG] = True
+    helpers.append(cam)
+    for ob in helpers:
+        scene.collection.objects.link(ob)
+
+    world_before = scene.world
+    world = bpy.data.worlds.new("_artdef_render_world")
+    world.color = (0.92, 0.92, 0.92)
+    scene.world = world
+
+    render = scene.render
+    saved = (render.engine, render.resolution_x, render.resolution_y,
+             render.resolution_percentage, render.filepath, scene.camera,
+             render.image_settings.file_format, render.film_transparent)
+    shading = scene.display.shading
+    saved_shading = (shading.light, shading.color_type, shading.show_shadows,
+                     shading.show_cavity, shading.show_object_outline)
+    try:
+        render.engine = 'BLENDER_WORKBENCH'
+        render.resolution_x, render.resolution_y = resolution
+        render.resolution_percentage = 100
+        render.image_settings.file_format = 'PNG'
+        render.film_transparent = False
+        shading.light = 'STUDIO'
+        shading.color_type = 'VERTEX' if attr_name else 'MATERIAL'
+        shading.show_shadows = False
+        shading.show_cavity = True
+        shading.show_object_outline = True
+
+        # Orthographic three-quarter view from the front-right, slightly
+        # above, framing the mesh and the bones with a margin.
+        view_dir = Vector((0.55, -1.0, 0.45)).normalized()
+        rot = (-view_dir).to_track_quat('-Z', 'Y')
+        right, up = rot @ Vector((1, 0, 0)), rot @ Vector((0, 1, 0))
+        xs = [p.dot(right) for p in pts] or [0.0]
+        ys = [p.dot(up) for p in pts] or [0.0]
+        ds = [p.dot(view_dir) for p in pts] or [0.0]
+        width, height = max(xs) - min(xs), max(ys) - min(ys)
+        aspect = resolution[0] / resolution[1]
+        cam_data.ortho_scale = max(width, height * aspect, 1e-3) * 1.15
+        cam_data.sensor_fit = 'HORIZONTAL'
+        center_2d = right * (max(xs) + min(xs)) / 2 + up * (max(ys) + min(ys)) / 2
+        cam.rotation_euler = rot.to_euler()
+        cam.location = center_2d + view_dir * (max(ds) + size + 1.0)
+        cam_data.clip_start = 0.01
+        cam_data.clip_end = (max(ds) - min(ds)) + 2 * size + 10.0
+        scene.camera = cam
+
+        render.filepath = path
+        bpy.ops.render.render(write_still=True)
+    finally:
+        (render.engine, render.resolution_x, render.resolution_y,
+         render.resolution_percentage, render.filepath, scene.camera,
+         render.image_settings.file_format, render.film_transparent) = saved
+        (shading.light, shading.color_type, shading.show_shadows,
+         shading.show_cavity, shading.show_object_outline) = saved_shading
+        scene.world = world_before
+        bpy.data.worlds.remove(world)
+        for ob in helpers:
+            data = ob.data
+            bpy.data.objects.remove(ob)
+            if isinstance(data, bpy.types.Mesh):
+                bpy.data.meshes.remove(data)
+            elif isinstance(data, bpy.types.Camera):
+                bpy.data.cameras.remove(data)
+        scene.frame_set(frame_before)
+    if not os.path.isfile(path):
+        raise RuntimeError(f"render wrote nothing to {path}")
+    return path
+
+
+# --------------------------------------------------------------------------
+# Entry point used by artdef_addon.cli
+# --------------------------------------------------------------------------
+
+def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
+                  glb: str | None, png: str | None) -> dict:
+    """Fit ``scan_path`` with ``bpy.ops.artdef.fit(**fit_kwargs)`` in a fresh
+    scene and write the requested outputs; return ``{"blend"|"glb"|"png": path}``
+    for those written."""
+    bpy = _bpy()
+    scan_path = os.path.abspath(scan_path)
+
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    ensure_registered()
+
+    result = bpy.ops.artdef.import_scan(filepath=scan_path)
+    if 'FINISHED' not in result:
+        raise RuntimeError(f"artdef.import_scan({scan_path!r}) returned {set(result)}")
+    mesh = bpy.context.view_layer.objects.active
+    if mesh is None or mesh.type != 'MESH':
+        raise RuntimeError("artdef.import_scan did not leave the imported mesh active")
+
+    with bpy.context.temp_override(active_object=mesh, object=mesh,
+                                   selected_objects=[mesh], selected_editable_objects=[mesh]):
+        result = bpy.ops.artdef.fit(**fit_kwargs)
+    if 'FINISHED' not in result:
+        raise RuntimeError(f"artdef.fit({fit_kwargs}) returned {set(result)}")
+    armature = _find_armature(mesh)
+
+    written = {}
+    if glb is not None and armature is not None:
+        # Parent before saving, so the .blend and the .glb hold the same rig.
+        _parent_keep_transform(mesh, armature)
+    if blend is not None:
+        written["blend"] = save_blend(blend)
+    if glb is not None:
+        written["glb"] = export_glb(glb, mesh, armature)
+    if png is not None:
+        written["png"] = render_png(png, mesh, armature)
+    return written
+
+
+__all__ = ["build_outputs", "ensure_registered", "save_blend", "export_glb", "render_png",
+           "NEED_BPY"]

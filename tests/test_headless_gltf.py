@@ -1,0 +1,216 @@
+"""Headless fits end to end: ``python -m artdef_addon fit ... --blend --glb --png``
+as a subprocess, the .glb checked by the Khronos validator and read back."""
+
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import REPO_ROOT
+
+LINKS = 3
+VALIDATOR = REPO_ROOT / ".tools" / "node_modules" / "gltf-validator"
+VALIDATE_JS = REPO_ROOT / "scripts" / "validate_gltf.js"
+
+
+def _run(args, cwd, timeout=600):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(REPO_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    return subprocess.run([sys.executable, *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _ok(proc):
+    assert proc.returncode == 0, (
+        f"exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}")
+    return proc
+
+
+@pytest.fixture(scope="module")
+def rod_scan(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scan")
+    scan = d / "rod.npz"
+    _ok(_run(["-m", "artdef_addon", "sample", "rod", "-o", str(scan)], cwd=d))
+    assert scan.is_file()
+    return scan
+
+
+@pytest.fixture(scope="module")
+def fitted(rod_scan, tmp_path_factory):
+    """One CLI fit of the rod writing every output (shared by the tests below)."""
+    d = tmp_path_factory.mktemp("fit")
+    out = {k: d / f"rod.{k}" for k in ("npz", "blend", "glb", "png")}
+    proc = _ok(_run(["-m", "artdef_addon", "fit", str(rod_scan), "--links", str(LINKS),
+                     "-o", str(out["npz"]), "--blend", str(out["blend"]),
+                     "--glb", str(out["glb"]), "--png", str(out["png"])], cwd=d))
+    out["proc"] = proc
+    return out
+
+
+# ---------------------------------------------------------------- GLB reader
+
+_COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16,
+              5125: np.uint32, 5126: np.float32}
+_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+def read_glb(path):
+    """(json dict, binary chunk) of a GLB file (glTF 2.0 binary container)."""
+    data = path.read_bytes()
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    assert magic == b"glTF" and version == 2 and length == len(data)
+    gltf, binary, offset = None, b"", 12
+    while offset < length:
+        chunk_len, chunk_type = struct.unpack_from("<I4s", data, offset)
+        chunk = data[offset + 8: offset + 8 + chunk_len]
+        offset += 8 + chunk_len
+        if chunk_type == b"JSON":
+            gltf = json.loads(chunk)
+        elif chunk_type == b"BIN\x00":
+            binary = chunk
+    assert gltf is not None, "no JSON chunk"
+    return gltf, binary
+
+
+def accessor(gltf, binary, index):
+    acc = gltf["accessors"][index]
+    view = gltf["bufferViews"][acc["bufferView"]]
+    dtype = np.dtype(_COMPONENT[acc["componentType"]])
+    width = _WIDTH[acc["type"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    stride = view.get("byteStride", dtype.itemsize * width)
+    rows = [np.frombuffer(binary, dtype=dtype, count=width, offset=start + i * stride)
+            for i in range(acc["count"])]
+    return np.array(rows).reshape(acc["count"], width)
+
+
+def yup_to_blender(p):
+    """glTF is Y-up; Blender's exporter maps Blender (x, y, z) to (x, z, -y)."""
+    return np.array([p[0], -p[2], p[1]])
+
+
+# ---------------------------------------------------------------- tests
+
+def test_fit_cli_writes_every_output(fitted):
+    for key in ("npz", "blend", "glb", "png"):
+        assert fitted[key].is_file() and fitted[key].stat().st_size > 0, key
+    assert fitted["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    head = fitted["blend"].read_bytes()[:7]
+    assert head == b"BLENDER" or head[:4] == b"\x28\xb5\x2f\xfd", head  # plain or zstd
+
+
+def test_glb_passes_khronos_validator(fitted):
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed (apt-get install nodejs): glTF validator not run")
+    if not (VALIDATOR / "package.json").is_file():
+        pytest.skip("gltf-validator not installed in .tools/ (scripts/test.sh installs it)")
+    proc = subprocess.run([node, str(VALIDATE_JS), str(fitted["glb"]), "--json"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode in (0, 1), proc.stderr
+    issues = json.loads(proc.stdout)["issues"]
+    errors = [m for m in issues["messages"] if m["severity"] == 0]
+    assert issues["numErrors"] == 0, errors
+    assert proc.returncode == 0
+
+
+def test_glb_has_one_joint_per_link_at_the_fitted_joints(fitted, rod_scan):
+    gltf, binary = read_glb(fitted["glb"])
+    result = np.load(fitted["npz"])
+    heads = np.asarray(result["heads"], dtype=float)
+    assert heads.shape == (LINKS, 3)
+
+    assert len(gltf.get("skins", [])) == 1, gltf.get("skins")
+    skin = gltf["skins"][0]
+    assert len(skin["joints"]) == LINKS, [gltf["nodes"][j].get("name") for j in skin["joints"]]
+    ibm = accessor(gltf, binary, skin["inverseBindMatrices"]).reshape(-1, 4, 4)
+    # glTF matrices are column-major: transpose to the usual row-major layout.
+    bind = np.array([np.linalg.inv(m.T) for m in ibm])
+    joints_world = np.array([yup_to_blender(m[:3, 3]) for m in bind])
+
+    scale = np.ptp(np.load(rod_scan)["vertices"], axis=0).max()
+    tol = 1e-4 * scale
+    # Skin joint order need not match the result's link order: match each head.
+    dist = np.linalg.norm(heads[:, None, :] - joints_world[None, :, :], axis=2)
+    assert dist.min(axis=1).max() < tol, (heads, joints_world)
+    assert dist.min(axis=0).max() < tol, (heads, joints_world)
+
+
+def test_glb_mesh_morph_targets_and_animation(fitted, rod_scan):
+    gltf, binary = read_glb(fitted["glb"])
+    n_vertices = np.load(rod_scan)["vertices"].shape[0]
+
+    skinned = [n for n in gltf["nodes"] if "mesh" in n and "skin" in n]
+    assert len(skinned) == 1, "expected one skinned mesh node"
+    mesh = gltf["meshes"][skinned[0]["mesh"]]
+    exported = sum(gltf["accessors"][p["attributes"]["POSITION"]]["count"]
+                   for p in mesh["primitives"])
+    # glTF splits vertices at seams, never merges them.
+    assert exported >= n_vertices
+    for prim in mesh["primitives"]:
+        assert {"JOINTS_0", "WEIGHTS_0"} <= set(prim["attributes"])
+        assert prim.get("targets"), "no morph targets (residual shape keys)"
+        weights = accessor(gltf, binary, prim["attributes"]["WEIGHTS_0"])
+        np.testing.assert_allclose(weights.sum(axis=1), 1.0, atol=2e-3)
+
+    animations = gltf.get("animations", [])
+    assert animations, "no animation"
+    paths = {c["target"]["path"] for a in animations for c in a["channels"]}
+    assert paths & {"rotation", "translation"}, paths   # joints move
+    assert "weights" in paths, paths                    # morph weights (baked drivers)
+    times = np.concatenate([accessor(gltf, binary, s["input"]).ravel()
+                            for a in animations for s in a["samplers"]])
+    assert times.max() > times.min(), "animation has a single key"
+
+
+def test_artdef_fit_script_runs_with_the_bpy_module(rod_scan, tmp_path):
+    glb = tmp_path / "script.glb"
+    _ok(_run([str(REPO_ROOT / "scripts" / "artdef_fit.py"), "--", "fit", str(rod_scan),
+              "--links", str(LINKS), "--glb", str(glb)], cwd=tmp_path))
+    assert glb.is_file() and glb.read_bytes()[:4] == b"glTF"
+
+
+def test_build_outputs_without_bpy_says_how_to_get_it(tmp_path):
+    code = ("import sys; sys.modules['bpy'] = None\n"
+            "from artdef_addon import headless\n"
+            "try:\n"
+            "    headless.build_outputs('x.npz', {}, None, 'x.glb', None)\n"
+            "except RuntimeError as ex:\n"
+            "    print(ex)\n"
+            "    raise SystemExit(3)\n")
+    proc = _run(["-c", code], cwd=tmp_path)
+    assert proc.returncode == 3, proc.stderr
+    assert "need Blender" in proc.stdout and "bpy" in proc.stdout
+
+
+def _bad_scans(rod):
+    scan = dict(np.load(rod))
+    v = scan["vertices"]
+    flat = dict(scan, vertices=v[:, :2])                       # (N, 2) vertices
+    short = dict(scan)
+    if "displacements" in scan:
+        short["displacements"] = scan["displacements"][:, :-1]  # one vertex short
+    else:
+        short["greens"] = scan["greens"][:-3]                  # one vertex short
+    return {"vertices_2d": flat, "field_vertex_count": short}
+
+
+@pytest.mark.parametrize("kind", ["vertices_2d", "field_vertex_count"])
+def test_fit_on_wrong_shape_fails_with_one_line_and_writes_nothing(rod_scan, tmp_path, kind):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **_bad_scans(rod_scan)[kind])
+    outs = [tmp_path / n for n in ("r.npz", "r.blend", "r.glb", "r.png")]
+    proc = _run(["-m", "artdef_addon", "fit", str(bad), "--links", str(LINKS),
+                 "-o", str(outs[0]), "--blend", str(outs[1]), "--glb", str(outs[2]),
+                 "--png", str(outs[3])], cwd=tmp_path, timeout=300)
+    assert proc.returncode != 0
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not [p.name for p in outs if p.exists()], "outputs written for a bad scan"
