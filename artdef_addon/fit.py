@@ -1,0 +1,506 @@
+"""The whole fit: segmentation, link motions, joints, tree, skin, springs and residual.
+
+Stages (paper §5–§7, METHOD §2–§10):
+
+1. ``features``  per field and triangle: the motion ν (Eq. 4) and what ε (Eq. 5) needs;
+2. ``cluster``   per field: average linkage over ε, cut to k (§5.2);
+3. ``merge``     split along every seam, merge on Λ with motion centroids (§5.2);
+   Green's scans use two levels: per block column, then across all columns (§7.2, A-9);
+4. ``joints``    link motions (robust medoid or least squares, §6), joint centres (§4, §6),
+   the minimum spanning tree over joint cost, ground / world joint;
+5. ``model``     bone frames, pose parameters per field, seam-blended weights, rest-space
+   residual, springs κ (§7).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from . import clustering, joints as _joints, merge as _merge, model as _model
+from .metric import field_features
+from .scan import Scan, ScanError, validate_scan
+from .skinning import blend_weights
+
+MODES = ("global", "pseudo")
+MOTIONS = ("robust", "lsq")
+
+
+class FitCancelled(Exception):
+    """The progress callback asked to stop; nothing was produced."""
+
+
+@dataclasses.dataclass
+class FitResult:
+    face_labels: np.ndarray
+    parents: np.ndarray
+    joints: np.ndarray
+    joint_errors: np.ndarray
+    heads: np.ndarray
+    tails: np.ndarray
+    frames: np.ndarray
+    grounded: np.ndarray
+    weights: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+    angles: np.ndarray
+    locations: np.ndarray
+    residual: np.ndarray
+    link_residuals: np.ndarray
+    rms_articulation: float
+    rms_total: float
+    articulation_error_percent: float
+    kappa: np.ndarray | None = None
+    load_vertices: np.ndarray | None = None
+    probe_load: float = 1.0
+    p_max: float | None = None
+    mode: str = "global"
+    motion: str = "robust"
+    timings: dict = dataclasses.field(default_factory=dict)
+    pseudo: list | None = None
+
+    @property
+    def n_links(self) -> int:
+        return int(self.parents.shape[0])
+
+    @property
+    def params(self) -> np.ndarray:
+        """Pose parameters per field, (P, L, 6): Euler XYZ then location."""
+        return np.concatenate([self.angles, self.locations], axis=-1)
+
+    def summary(self) -> str:
+        lines = [f"links: {self.n_links}  mode: {self.mode}  motion: {self.motion}"]
+        for l in range(self.n_links):
+            j = self.joints[l]
+            where = "free root" if np.isnan(j).any() else "joint (" + ", ".join(f"{v:.4f}" for v in j) + ")"
+            par = "world" if self.parents[l] < 0 and self.grounded[l] else (
+                "-" if self.parents[l] < 0 else f"link {self.parents[l]}")
+            lines.append(f"  link {l:2d}: {np.count_nonzero(self.face_labels == l):6d} triangles, "
+                         f"parent {par:>8s}, {where}, joint error {self.joint_errors[l]:.3g}")
+        lines.append(f"rms error: articulation {self.rms_articulation:.4g} "
+                     f"({self.articulation_error_percent:.2f}%), articulation + residual {self.rms_total:.3g}")
+        lines.append("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in self.timings.items()))
+        return "\n".join(lines)
+
+
+def _report(progress, stage, frac):
+    if progress is not None and progress(stage, float(frac)):
+        raise FitCancelled(f"cancelled during {stage}")
+
+
+class Segmenter:
+    """Distances and per-field clustering trees of a scan, cached so that the link count can change.
+
+    ``labels(k)`` re-cuts the cached trees and re-runs split and merge; the pairwise distances
+    are computed once (the expensive O(T²) stage).
+    """
+
+    def __init__(self, scan: Scan, progress=None, refine_seams: bool = True):
+        scan = validate_scan(scan)
+        self.refine = refine_seams
+        self.scan = scan
+        self.progress = progress
+        T = scan.n_faces
+        bad = np.zeros(T, dtype=bool)
+        bad[scan.degenerate_faces] = True
+        self.valid = np.flatnonzero(~bad)
+        self.faces = scan.faces[self.valid]
+        x0 = scan.vertices
+        self.timings = {}
+        t0 = time.perf_counter()
+        fields = scan.fields()
+        self.features = []
+        for p in range(scan.n_fields):
+            _report(progress, "features", p / scan.n_fields)
+            self.features.append(field_features(x0, fields[p], self.faces))
+        self.weights = _merge.field_weights(self.features)
+        if scan.kind == "greens":
+            self.groups = [[3 * k, 3 * k + 1, 3 * k + 2] for k in range(scan.n_loads)]
+        else:
+            self.groups = [[p] for p in range(scan.n_fields)]
+        self.adjacency = clustering.face_adjacency(self.faces)
+        self.timings["features"] = time.perf_counter() - t0
+        self._trees = {}
+
+    def tree(self, p: int) -> np.ndarray:
+        if p not in self._trees:
+            self._trees[p] = clustering.field_linkage(self.features[p])
+        return self._trees[p]
+
+    def _ensure_trees(self, fields):
+        t0 = time.perf_counter()
+        todo = [p for p in fields if p not in self._trees and self.weights[p] > 0]
+        for i, p in enumerate(todo):
+            _report(self.progress, "cluster", i / max(len(todo), 1))
+            self.tree(p)
+        self.timings["cluster"] = self.timings.get("cluster", 0.0) + time.perf_counter() - t0
+
+    def _merge(self, init, fields, k, stage):
+        feats = [self.features[p] for p in fields]
+        w = self.weights[fields]
+        cb = None if self.progress is None else (lambda f: self.progress(stage, f))
+        try:
+            return _merge.merge_clusters(feats, w, init, k, progress=cb)
+        except _merge._Cancel:
+            raise FitCancelled(f"cancelled during {stage}") from None
+
+    def _check_k(self, k):
+        if k < 1:
+            raise ScanError(f"the number of links must be at least 1, got {k}")
+        if k > len(self.valid):
+            raise ScanError(f"more links requested ({k}) than triangles ({len(self.valid)})")
+
+    def segment(self, k: int, fields=None):
+        """Links over ``fields`` (default all): ``(labels (Tv,), medoids (k, P_sel), fields)``.
+
+        One level over all fields for tracked scans; for a Green's scan two levels: each block
+        column's three fields, then the union of their seams merged over all fields (A-9).
+        """
+        self._check_k(k)
+        groups = self.groups if fields is None else [list(fields)]
+        all_fields = [p for g in groups for p in g if self.weights[p] > 0]
+        if not all_fields:
+            raise ScanError("too few fields: no field moves the mesh")
+        self._ensure_trees(all_fields)
+        t0 = time.perf_counter()
+        n = len(self.valid)
+        cuts = {p: clustering.cut(self._trees[p], n, k) for p in all_fields}
+        if len(groups) > 1 and any(len(g) > 1 for g in groups):
+            level1 = []
+            for gi, g in enumerate(groups):
+                gf = [p for p in g if self.weights[p] > 0]
+                if not gf:
+                    continue
+                init = clustering.split(np.stack([cuts[p] for p in gf]), self.adjacency)
+                lab, _, _ = self._merge(init, gf, min(k, len(np.unique(init))), f"merge column {gi}")
+                level1.append(lab)
+            init = clustering.split(np.stack(level1), self.adjacency)
+        else:
+            init = clustering.split(np.stack([cuts[p] for p in all_fields]), self.adjacency)
+        labels, medoids, sums = self._merge(init, all_fields, k, "merge")
+        if self.refine:
+            R = np.stack([self.features[p].R[medoids[:, i]] for i, p in enumerate(all_fields)])
+            t = np.stack([self.features[p].t[medoids[:, i]] for i, p in enumerate(all_fields)])
+            labels = _merge.refine_seams(self.scan.vertices, self.scan.fields()[all_fields], self.faces,
+                                         R, t, self.weights[all_fields], labels, self.adjacency)
+        self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0
+        return labels, medoids, all_fields
+
+    def labels(self, k: int, fields=None) -> np.ndarray:
+        """Face labels (T,) for ``k`` links, degenerate triangles taking their neighbours' link."""
+        lab, _, _ = self.segment(k, fields)
+        return self.full_labels(lab)
+
+    def full_labels(self, lab_valid: np.ndarray) -> np.ndarray:
+        T = self.scan.n_faces
+        out = np.full(T, -1, dtype=np.int64)
+        out[self.valid] = lab_valid
+        if len(self.valid) < T:
+            adj = clustering.face_adjacency(self.scan.faces)
+            for _ in range(T):
+                missing = out < 0
+                if not missing.any():
+                    break
+                a, b = adj[:, 0], adj[:, 1]
+                src = np.concatenate([b[missing[a] & ~missing[b]], a[missing[b] & ~missing[a]]])
+                dst = np.concatenate([a[missing[a] & ~missing[b]], b[missing[b] & ~missing[a]]])
+                if src.size == 0:
+                    out[missing] = 0
+                    break
+                # majority of labelled neighbours: take the most frequent (dst, label) pair
+                pairs = np.unique(np.stack([dst, out[src]], 1), axis=0, return_counts=True)
+                keys, counts = pairs
+                order = np.lexsort((-counts, keys[:, 0]))
+                keys = keys[order]
+                first = np.unique(keys[:, 0], return_index=True)[1]
+                out[keys[first, 0]] = keys[first, 1]
+        return out
+
+
+def _lsq_motions(x0, fields, faces, labels, L):
+    """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, METHOD §6)."""
+    P = fields.shape[0]
+    R = np.zeros((P, L, 3, 3))
+    t = np.zeros((P, L, 3))
+    for l in range(L):
+        vid = np.unique(faces[labels == l])
+        a = x0[vid]
+        b = a[None] + fields[:, vid]
+        am = a.mean(axis=0)
+        bm = b.mean(axis=1)
+        H = np.einsum("ni,pnj->pij", a - am, b - bm[:, None])
+        U, _, Vt = np.linalg.svd(H)
+        d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+        D = np.zeros((P, 3, 3))
+        D[:, 0, 0] = 1
+        D[:, 1, 1] = 1
+        D[:, 2, 2] = d
+        Rl = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+        R[:, l] = Rl
+        t[:, l] = bm - np.einsum("pij,j->pi", Rl, am)
+    return R, t
+
+
+def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion, field_idx):
+    """Stages 4–5 for the fields ``field_idx`` of ``scan``; returns a FitResult."""
+    x0 = scan.vertices
+    faces = scan.faces
+    fields = scan.fields()[field_idx]
+    P = len(field_idx)
+    labels = seg.full_labels(labels_valid)
+    L = int(labels.max()) + 1
+    timings = {}
+    t0 = time.perf_counter()
+    # link motions
+    if motion == "lsq":
+        R, t = _lsq_motions(x0, fields, faces, labels, L)
+    else:
+        R = np.tile(np.eye(3), (P, L, 1, 1))
+        t = np.zeros((P, L, 3))
+        col = {p: i for i, p in enumerate(used_fields)}
+        for i, p in enumerate(field_idx):
+            if p in col:
+                m = medoids[:, col[p]]
+                R[i] = seg.features[p].R[m]
+                t[i] = seg.features[p].t[m]
+    # adjacency of links (shared vertices) and seam reference points
+    N = x0.shape[0]
+    inc = np.zeros((N, L))
+    np.add.at(inc, (faces.reshape(-1), np.repeat(labels, 3)), 1.0)
+    inc = (inc > 0).astype(np.float64)
+    shared = inc.T @ inc
+    seam_sum = np.einsum("na,nb,nd->abd", inc, inc, x0)
+    areas = 0.5 * np.linalg.norm(np.cross(x0[faces[:, 1]] - x0[faces[:, 0]],
+                                          x0[faces[:, 2]] - x0[faces[:, 0]]), axis=1)
+    centroid = np.zeros((L, 3))
+    for l in range(L):
+        m = labels == l
+        w = areas[m]
+        c = x0[faces[m]].mean(axis=1)
+        centroid[l] = (w[:, None] * c).sum(0) / w.sum() if w.sum() > 0 else c.mean(0)
+    diag = float(np.linalg.norm(np.ptp(x0, axis=0)))
+    support = scan.support_vertices
+    G = L  # ground node index
+    nodes = L + (1 if support is not None else 0)
+    I3 = np.tile(np.eye(3), (P, 1, 1))
+    Z3 = np.zeros((P, 3))
+    edges, costs, pref, centres = [], [], [], []
+    for a in range(L):
+        for b in range(a + 1, L):
+            adj = shared[a, b] > 0
+            c_ref = seam_sum[a, b] / shared[a, b] if adj else 0.5 * (centroid[a] + centroid[b])
+            c, rms, _ = _joints.fit_joint(R[:, a], t[:, a], R[:, b], t[:, b], c_ref)
+            edges.append((a, b)); costs.append(rms); pref.append(adj); centres.append(c)
+    if support is not None:
+        sup_in = inc[support].sum(axis=0) > 0
+        for a in range(L):
+            sv = support[inc[support, a] > 0] if sup_in[a] else support
+            c, rms, _ = _joints.fit_joint(R[:, a], t[:, a], I3, Z3, x0[sv].mean(axis=0))
+            edges.append((a, G)); costs.append(rms); pref.append(bool(sup_in[a])); centres.append(c)
+    edges = np.array(edges, dtype=np.int64).reshape(-1, 2)
+    costs = np.array(costs)
+    pref = np.array(pref, dtype=bool)
+    centres = np.array(centres).reshape(-1, 3)
+    sizes = np.bincount(labels, minlength=L)
+    root = G if support is not None else int(np.argmax(sizes))
+    parents_all = _joints.spanning_tree(nodes, edges, costs, pref, root)
+    lookup = {(int(a), int(b)): i for i, (a, b) in enumerate(edges)}
+    parents = np.full(L, -1, dtype=np.int64)
+    joint = np.full((L, 3), np.nan)
+    jerr = np.full(L, np.nan)
+    grounded = np.zeros(L, dtype=bool)
+    for l in range(L):
+        p = int(parents_all[l])
+        if p < 0:
+            continue
+        i = lookup[(min(l, p), max(l, p))]
+        joint[l] = centres[i]
+        jerr[l] = costs[i]
+        if p == G and support is not None:
+            grounded[l] = True
+        else:
+            parents[l] = p
+    if support is None:
+        # the root's joint with the fixed world frame, reported when it fits (paper's Joint 1)
+        r = root
+        c, rms, rank = _joints.fit_joint(R[:, r], t[:, r], I3, Z3, centroid[r])
+        tree_err = jerr[np.isfinite(jerr)]
+        tol = max(2.0 * (tree_err.max() if tree_err.size else 0.0), 1e-6 * diag)
+        if rms <= tol and rank > 0:
+            joint[r] = c
+            jerr[r] = rms
+            grounded[r] = True
+    timings["joints"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    heads, tails, frames = _bones(x0, faces, labels, parents, joint, centroid, diag)
+    params = _model.params_from_motions(parents, heads, frames, grounded, R, t)
+    weights = blend_weights(x0, faces, labels, L)
+    Rf, tf = _model.forward_kinematics(parents, heads, frames, params)
+    residual = np.zeros((P, N, 3))
+    art_err = np.zeros(P)
+    tot_err = np.zeros(P)
+    link_res = np.zeros((P, L))
+    for i in range(P):
+        x1 = x0 + fields[i]
+        art = _model.skin(weights, Rf[i], tf[i], x0)
+        residual[i] = _model.rest_space_residual(weights, Rf[i], tf[i], x0, x1)
+        back = _model.skin(weights, Rf[i], tf[i], x0 + residual[i])
+        art_err[i] = np.sum((art - x1) ** 2)
+        tot_err[i] = np.sum((back - x1) ** 2)
+        # rigid-motion residual of each link's own motion over its vertices (fit quality)
+        for l in range(L):
+            vid = np.unique(faces[labels == l])
+            d = x0[vid] @ R[i, l].T + t[i, l] - x1[vid]
+            link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
+    rms_art = float(np.sqrt(art_err.sum() / (P * N)))
+    rms_tot = float(np.sqrt(tot_err.sum() / (P * N)))
+    xs = x0[None] + fields
+    spread = np.sqrt(np.sum((xs - xs.mean(axis=0)) ** 2))
+    kg = float(100.0 * np.sqrt(art_err.sum()) / spread) if spread > 0 else 0.0
+    timings["model"] = time.perf_counter() - t0
+    res = FitResult(face_labels=labels, parents=parents, joints=joint, joint_errors=jerr,
+                    heads=heads, tails=tails, frames=frames, grounded=grounded, weights=weights,
+                    rotations=R, translations=t, angles=params[..., :3], locations=params[..., 3:],
+                    residual=residual, link_residuals=link_res, rms_articulation=rms_art,
+                    rms_total=rms_tot, articulation_error_percent=kg, motion=motion, timings=timings,
+                    probe_load=scan.probe_load)
+    if scan.kind == "greens":
+        res.kappa = np.transpose(params, (1, 2, 0)) / scan.probe_load
+        res.residual = residual
+        loads = np.asarray(field_idx) // 3
+        res.load_vertices = scan.load_vertices[np.unique(loads)]
+    return res
+
+
+def _bones(x0, faces, labels, parents, joint, centroid, diag):
+    """Bone head (joint, or link centroid for a free root), tail and rest frame per link."""
+    L = len(parents)
+    heads = np.where(np.isnan(joint).any(axis=1)[:, None], centroid, joint)
+    tails = np.zeros((L, 3))
+    frames = np.zeros((L, 3, 3))
+    for l in range(L):
+        h = heads[l]
+        kids = np.flatnonzero(parents == l)
+        vid = np.unique(faces[labels == l])
+        pts = x0[vid]
+        tail = None
+        if kids.size:
+            target = heads[kids].mean(axis=0)
+            if np.linalg.norm(target - h) > 1e-3 * diag:
+                tail = target
+        if tail is None:
+            q = pts - pts.mean(axis=0)
+            axis = np.linalg.svd(q, full_matrices=False)[2][0] if len(pts) > 1 else np.array([0, 0, 1.0])
+            if np.dot(centroid[l] - h, axis) < 0:
+                axis = -axis
+            length = float(np.max((pts - h) @ axis)) if len(pts) else 0.0
+            if length < 1e-3 * diag:
+                length = max(0.05 * diag, 1e-6)
+            tail = h + axis * length
+        tails[l] = tail
+        y = (tail - h) / np.linalg.norm(tail - h)
+        zref = np.array([0.0, 0.0, 1.0]) if abs(y[2]) < 0.99 else np.array([0.0, -1.0, 0.0])
+        z = zref - y * np.dot(zref, y)
+        z /= np.linalg.norm(z)
+        x = np.cross(y, z)
+        frames[l] = np.stack([x, y, z], axis=1)
+    return heads, tails, frames
+
+
+def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_max=None,
+        progress=None, segmenter: Segmenter | None = None) -> FitResult:
+    """Fit an articulated deformable model to ``scan`` with ``links`` links (paper §5–§7)."""
+    if mode not in MODES:
+        raise ScanError(f"mode must be one of {MODES}, got {mode!r}")
+    if motion not in MOTIONS:
+        raise ScanError(f"motion must be one of {MOTIONS}, got {motion!r}")
+    if p_max is not None and not (np.isfinite(p_max) and p_max > 1):
+        raise ScanError(f"p_max must be a number greater than 1 (or off), got {p_max}")
+    if mode == "pseudo" and scan.greens is None:
+        raise ScanError("pseudo-articulation needs a Green's-matrix scan (one model per load column)")
+    try:
+        links = int(links)
+    except (TypeError, ValueError):
+        raise ScanError(f"the number of links must be an integer, got {links!r}") from None
+    t_start = time.perf_counter()
+    seg = segmenter if segmenter is not None else Segmenter(scan, progress)
+    seg.progress = progress
+    scan = seg.scan
+    seg._check_k(links)
+    labels, medoids, used = seg.segment(links)
+    _report(progress, "joints", 0.0)
+    result = _articulate(scan, seg, labels, medoids, used, motion, list(range(scan.n_fields)))
+    result.mode = mode
+    result.p_max = p_max
+    if mode == "pseudo":
+        result.pseudo = []
+        for k, g in enumerate(seg.groups):
+            _report(progress, "pseudo", k / len(seg.groups))
+            lab, med, used_k = seg.segment(links, fields=g)
+            sub = _articulate(scan, seg, lab, med, used_k, motion, g)
+            sub.mode = "pseudo"
+            sub.p_max = p_max
+            result.pseudo.append(sub)
+    timings = {"features": seg.timings.get("features", 0.0), "cluster": seg.timings.get("cluster", 0.0),
+               "merge": seg.timings.get("merge", 0.0)}
+    timings.update(result.timings)
+    timings["total"] = time.perf_counter() - t_start
+    result.timings = timings
+    _report(progress, "done", 1.0)
+    return result
+
+
+# ---------------------------------------------------------------- result file
+_ARRAYS = ("face_labels", "parents", "joints", "joint_errors", "heads", "tails", "frames", "grounded",
+           "weights", "rotations", "translations", "angles", "locations", "residual", "link_residuals")
+
+
+def save_result(path, result: FitResult) -> None:
+    """Write a result ``.npz`` (see README, "Result file")."""
+    out = {k: getattr(result, k) for k in _ARRAYS}
+    out.update(rms_articulation=np.float64(result.rms_articulation), rms_total=np.float64(result.rms_total),
+               articulation_error_percent=np.float64(result.articulation_error_percent),
+               probe_load=np.float64(result.probe_load),
+               p_max=np.float64(np.nan if result.p_max is None else result.p_max),
+               mode=np.array(result.mode), motion=np.array(result.motion),
+               timing_names=np.array(list(result.timings.keys()), dtype=str),
+               timing_seconds=np.array(list(result.timings.values()), dtype=np.float64))
+    if result.kappa is not None:
+        out["kappa"] = result.kappa
+        out["load_vertices"] = result.load_vertices
+    if result.pseudo:
+        out["pseudo_face_labels"] = np.stack([s.face_labels for s in result.pseudo])
+        for k, sub in enumerate(result.pseudo):
+            for name in _ARRAYS + ("kappa", "load_vertices"):
+                out[f"pseudo{k}_{name}"] = getattr(sub, name)
+    np.savez_compressed(path, **out)
+
+
+def load_result(path) -> FitResult:
+    """Read a result written by :func:`save_result` (``allow_pickle=False``)."""
+    with np.load(path, allow_pickle=False) as z:
+        d = {k: z[k] for k in z.files}
+
+    def build(prefix=""):
+        kw = {k: d[prefix + k] for k in _ARRAYS}
+        r = FitResult(**kw, rms_articulation=float(d["rms_articulation"]), rms_total=float(d["rms_total"]),
+                      articulation_error_percent=float(d["articulation_error_percent"]))
+        r.probe_load = float(d["probe_load"])
+        pm = float(d["p_max"])
+        r.p_max = None if np.isnan(pm) else pm
+        r.mode = str(d["mode"])
+        r.motion = str(d["motion"])
+        if prefix + "kappa" in d:
+            r.kappa = d[prefix + "kappa"]
+            r.load_vertices = d[prefix + "load_vertices"]
+        return r
+    res = build()
+    res.timings = dict(zip(d["timing_names"].tolist(), d["timing_seconds"].tolist()))
+    if "pseudo_face_labels" in d:
+        res.pseudo = []
+        k = 0
+        while f"pseudo{k}_face_labels" in d:
+            res.pseudo.append(build(f"pseudo{k}_"))
+            k += 1
+    return res

@@ -1,0 +1,157 @@
+"""Merge split clusters into links (paper §5.2 second half; METHOD §5.2–5.5).
+
+Every cluster C has, in every field p, a motion centroid m_C^p = argmin_{i∈C} Σ_{j∈C} ε_p(i,j)
+(its medoid triangle, choice A-6). Clusters are merged greedily on
+
+    Λ(A, B) = |A||B| / (|A| + |B|) · Σ_p w_p ε_p(m_A^p, m_B^p),
+
+with w_p = 1 / max_t z_p(t) putting each field on a unit scale (A-7), until ``k`` remain. The
+row sums Σ_{j∈C} ε_p(i,j) are kept per triangle and updated on every merge with the cross block
+of the two merged clusters only, so the medoids stay exact at a total cost bounded by one
+pass over the pairwise distances.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .metric import FieldFeatures, cross_sums, distance_block, distance_row_sums
+
+
+def field_weights(features: list[FieldFeatures]) -> np.ndarray:
+    """w_p = 1 / max_t |r(I→t) − r(ν_t→t)| (0 for a field without motion, which is dropped)."""
+    w = np.zeros(len(features))
+    for p, f in enumerate(features):
+        z = f.zero_distance().max() if f.n else 0.0
+        w[p] = 1.0 / z if z > 1e-300 else 0.0
+    return w
+
+
+class _Cancel(Exception):
+    pass
+
+
+def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.ndarray,
+                   k: int, progress=None):
+    """Agglomerate the clusters of ``init`` (T,) down to ``k`` on Λ.
+
+    Returns ``(labels (T,), medoids (k, P), row_sums (P, T))`` with labels 0..k−1 ordered by
+    the smallest triangle index of each link, and the medoid triangle of each link per field.
+    """
+    T = init.shape[0]
+    P = len(features)
+    _, init = np.unique(init, return_inverse=True)
+    nc = int(init.max()) + 1
+    members = _groups(init, nc)
+    sums = np.zeros((P, T))
+    for p, f in enumerate(features):
+        if weights[p] == 0:
+            continue
+        for m in members:
+            if len(m) > 1:
+                sums[p, m] = distance_row_sums(f, m, m)
+    medoid = np.zeros((nc, P), dtype=np.int64)
+    for c, m in enumerate(members):
+        medoid[c] = m[np.argmin(sums[:, m], axis=1)]
+    size = np.array([len(m) for m in members], dtype=np.float64)
+    D = np.zeros((nc, nc))
+    for p, f in enumerate(features):
+        if weights[p]:
+            D += weights[p] * distance_block(f, medoid[:, p], medoid[:, p])
+    active = np.ones(nc, dtype=bool)
+    lam = _lambda(D, size)
+    n_active = nc
+    total = max(nc - k, 1)
+    while n_active > k:
+        if progress is not None and progress((nc - n_active) / total):
+            raise _Cancel()
+        flat = int(np.argmin(lam))
+        a, b = divmod(flat, nc)
+        if a > b:
+            a, b = b, a
+        A, B = members[a], members[b]
+        for p, f in enumerate(features):
+            if weights[p]:
+                sa, sb = cross_sums(f, A, B)
+                sums[p, A] += sa
+                sums[p, B] += sb
+        m = np.concatenate([A, B])
+        members[a] = m
+        members[b] = np.zeros(0, dtype=np.int64)
+        active[b] = False
+        n_active -= 1
+        size[a] += size[b]
+        size[b] = 0
+        medoid[a] = m[np.argmin(sums[:, m], axis=1)]
+        row = np.zeros(nc)
+        for p, f in enumerate(features):
+            if weights[p]:
+                row += weights[p] * distance_block(f, medoid[[a], p], medoid[:, p])[0]
+        D[a, :] = row
+        D[:, a] = row
+        lam[b, :] = np.inf
+        lam[:, b] = np.inf
+        new = size[a] * size / np.maximum(size[a] + size, 1e-300) * row
+        new[~active] = np.inf
+        new[a] = np.inf
+        lam[a, :] = new
+        lam[:, a] = new
+    keep = np.flatnonzero(active)
+    order = keep[np.argsort([members[c].min() for c in keep])]
+    labels = np.empty(T, dtype=np.int64)
+    for new_label, c in enumerate(order):
+        labels[members[c]] = new_label
+    return labels, medoid[order], sums
+
+
+def _groups(labels: np.ndarray, n: int):
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(n + 1))
+    return [order[bounds[i]:bounds[i + 1]] for i in range(n)]
+
+
+def _lambda(D: np.ndarray, size: np.ndarray) -> np.ndarray:
+    lam = size[:, None] * size[None, :] / (size[:, None] + size[None, :]) * D
+    np.fill_diagonal(lam, np.inf)
+    return lam
+
+
+def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.ndarray, t: np.ndarray,
+                 weights: np.ndarray, labels: np.ndarray, adjacency: np.ndarray,
+                 iterations: int = 10) -> np.ndarray:
+    """Give each seam triangle to the side of the seam that holds most of its skin weight.
+
+    A triangle on a linearly blended seam moves in between its neighbours, so the clustering
+    may put it on either side. For every vertex and candidate link l (the triangle's own link
+    and its neighbours') the weighted error e_l(v) = Σ_p w_p ‖G_l^p x0(v) − x^p(v)‖ of the link's
+    robust motion is measured; ŵ_l(v) ∝ 1/e_l(v) recovers the blend weight of a vertex blended
+    between two links exactly, and the triangle goes to the link with the largest summed ŵ
+    over its three vertices — the definition of a face's true link in rigged data. Iterated
+    until no seam moves. An addition to the paper (README, "deviations").
+    """
+    labels = labels.copy()
+    k = R.shape[1]
+    T = labels.shape[0]
+    E = np.zeros((k, x0.shape[0]))
+    for p in range(fields.shape[0]):
+        if weights[p]:
+            moved = np.einsum("lij,nj->lni", R[p], x0) + t[p][:, None, :]
+            E += weights[p] * np.linalg.norm(moved - (x0 + fields[p])[None], axis=2)
+    scale = E.max() if E.size else 1.0
+    inv = 1.0 / (E + 1e-12 * max(scale, 1e-300))
+    inv_f = inv[:, faces]                                    # (k, T, 3)
+    a, b = adjacency[:, 0], adjacency[:, 1]
+    cols = np.arange(T)
+    for _ in range(iterations):
+        allowed = np.zeros((k, T), dtype=bool)
+        allowed[labels, cols] = True
+        allowed[labels[b], a] = True
+        allowed[labels[a], b] = True
+        w = np.where(allowed[:, :, None], inv_f, 0.0)
+        w /= w.sum(axis=0, keepdims=True)
+        score = w.sum(axis=2)
+        best = score.argmax(axis=0)
+        change = score[best, cols] > score[labels, cols] * (1 + 1e-9)
+        if not change.any():
+            break
+        labels[change] = best[change]
+    return labels

@@ -1,0 +1,183 @@
+"""The articulated deformable model (paper Eqs. 1–3, §7; METHOD §7.3, §8–§10).
+
+Pose parameters are per link six numbers: the bone-local Euler angles in Blender's 'XYZ'
+order (R = R_z R_y R_x) and a bone-local location. A link's bone has its head h at the joint
+and rest rotation B (columns: bone X, Y, Z in world space). Forward kinematics is Blender's
+armature formula:
+
+    G_child = G_parent · [B R_loc Bᵀ,  h + B loc − B R_loc Bᵀ h]
+
+and a vertex moves by linear blend skinning of the seam weights, applied to its rest position
+plus the residual shape offsets (shape keys act before the Armature modifier, as glTF morph
+targets act before skinning):
+
+    x(v) = Σ_l w_l(v) G_l (x0(v) + Σ_c δ_c(v) value_c).
+
+Calibration fields are reproduced exactly: δ_c is solved in that rest space (METHOD §8, with
+the residual stored before skinning — see README "deviations").
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def euler_to_matrix(angles: np.ndarray) -> np.ndarray:
+    """Blender 'XYZ' Euler (x, y, z) → rotation matrix R_z(z) R_y(y) R_x(x); any leading shape."""
+    a = np.asarray(angles, dtype=np.float64)
+    return Rotation.from_euler("xyz", a.reshape(-1, 3)).as_matrix().reshape(a.shape[:-1] + (3, 3))
+
+
+def matrix_to_euler(R: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`euler_to_matrix` (METHOD §7.3; gimbal lock handled by scipy)."""
+    R = np.asarray(R, dtype=np.float64)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # gimbal lock: scipy sets the third angle to 0
+        return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("xyz").reshape(R.shape[:-2] + (3,))
+
+
+def topological_order(parents: np.ndarray) -> list[int]:
+    order, seen = [], set()
+    children = {i: [] for i in range(len(parents))}
+    for i, p in enumerate(parents):
+        if p >= 0:
+            children[int(p)].append(i)
+    stack = [i for i, p in enumerate(parents) if p < 0][::-1]
+    while stack:
+        i = stack.pop()
+        if i in seen:
+            continue
+        seen.add(i)
+        order.append(i)
+        stack.extend(children[i][::-1])
+    if len(order) != len(parents):
+        raise ValueError("parents do not form a forest")
+    return order
+
+
+def forward_kinematics(parents, heads, frames, params) -> tuple[np.ndarray, np.ndarray]:
+    """Link transforms (R (..., L, 3, 3), t (..., L, 3)) for pose ``params`` (..., L, 6)."""
+    params = np.asarray(params, dtype=np.float64)
+    Rloc = euler_to_matrix(params[..., :3])
+    B = frames
+    Rw = np.einsum("lij,...ljk,lmk->...lim", B, Rloc, B)
+    tw = heads + np.einsum("lij,...lj->...li", B, params[..., 3:]) - np.einsum("...lij,lj->...li", Rw, heads)
+    R = np.empty_like(Rw)
+    t = np.empty_like(tw)
+    for l in topological_order(parents):
+        p = parents[l]
+        if p < 0:
+            R[..., l, :, :] = Rw[..., l, :, :]
+            t[..., l, :] = tw[..., l, :]
+        else:
+            R[..., l, :, :] = R[..., p, :, :] @ Rw[..., l, :, :]
+            t[..., l, :] = np.einsum("...ij,...j->...i", R[..., p, :, :], tw[..., l, :]) + t[..., p, :]
+    return R, t
+
+
+def params_from_motions(parents, heads, frames, grounded, R, t) -> np.ndarray:
+    """Pose parameters (..., L, 6) that reproduce link motions (R, t) as closely as the joints allow.
+
+    Relative rotation to the parent, expressed in the bone frame; locations only for roots that
+    are not attached to the world (METHOD §7.3).
+    """
+    L = len(parents)
+    Rrel = np.array(R, copy=True)
+    for l in range(L):
+        p = parents[l]
+        if p >= 0:
+            Rrel[..., l, :, :] = np.swapaxes(R[..., p, :, :], -1, -2) @ R[..., l, :, :]
+    Rloc = np.einsum("lji,...ljk,lkm->...lim", frames, Rrel, frames)
+    out = np.zeros(R.shape[:-2] + (6,))
+    out[..., :3] = matrix_to_euler(Rloc)
+    for l in range(L):
+        if parents[l] < 0 and not grounded[l]:
+            h = heads[l]
+            moved = t[..., l, :] - h + np.einsum("...ij,j->...i", R[..., l, :, :], h)
+            out[..., l, 3:] = np.einsum("ji,...j->...i", frames[l], moved)
+    return out
+
+
+def skin(weights, R, t, x) -> np.ndarray:
+    """Linear blend skinning Σ_l w_l (R_l x + t_l) for one pose; ``x`` (N,3)."""
+    out = np.zeros_like(x)
+    for l in range(weights.shape[1]):
+        w = weights[:, l]
+        nz = np.flatnonzero(w)
+        if nz.size:
+            out[nz] += w[nz, None] * (x[nz] @ R[l].T + t[l])
+    return out
+
+
+def blended_linear(weights, R) -> np.ndarray:
+    """Σ_l w_l R_l per vertex, (N,3,3)."""
+    return np.einsum("nl,lij->nij", weights, R)
+
+
+def rest_space_residual(weights, R, t, x0, x1) -> np.ndarray:
+    """δ with Σ_l w_l G_l (x0 + δ) = x1 exactly (METHOD §8 residual basis, in rest space)."""
+    art = skin(weights, R, t, x0)
+    Bv = blended_linear(weights, R)
+    rhs = x1 - art
+    det = np.linalg.det(Bv)
+    ok = np.abs(det) > 1e-10
+    d = np.empty_like(rhs)
+    if np.any(ok):
+        d[ok] = np.linalg.solve(Bv[ok], rhs[ok][..., None])[..., 0]
+    if np.any(~ok):
+        d[~ok] = np.einsum("nij,nj->ni", np.linalg.pinv(Bv[~ok]), rhs[~ok])
+    return d
+
+
+def harden(s, p_max):
+    """Strain hardening of a normalised load magnitude (paper §7.1; METHOD §10).
+
+    s̃ = p_max (1 − ((p_max − 1)/p_max)^s): s̃(0)=0, s̃(1)=1, s̃ → p_max. ``p_max=None`` is off.
+    """
+    s = np.asarray(s, dtype=np.float64)
+    if p_max is None:
+        return s
+    if p_max <= 1:
+        raise ValueError(f"p_max must be greater than 1, got {p_max}")
+    return p_max * (1.0 - ((p_max - 1.0) / p_max) ** s)
+
+
+def pose_params_for_loads(result, loads) -> np.ndarray:
+    """Joint angles linear in load (rotational springs, paper §7): params = κ · p, (L, 6)."""
+    loads = np.asarray(loads, dtype=np.float64).reshape(-1)
+    return np.einsum("ljc,c->lj", result.kappa, loads)
+
+
+def shape_values_for_loads(result, loads) -> np.ndarray:
+    """Residual shape-key values for loads (M,3): value_{3k+d} = h(p_k)_d / p̂ (hardening on Δ only, A-17)."""
+    loads = np.asarray(loads, dtype=np.float64).reshape(-1, 3)
+    ph = result.probe_load
+    n = np.linalg.norm(loads, axis=1)
+    if result.p_max is None:
+        h = loads
+    else:
+        s_t = harden(n / ph, result.p_max)
+        h = np.where(n[:, None] > 0, ph * s_t[:, None] * loads / np.maximum(n, 1e-300)[:, None], 0.0)
+    return (h / ph).reshape(-1)
+
+
+def deform(result, rest, params, shape_values) -> np.ndarray:
+    """Vertex positions of the rig in pose ``params`` (L,6) with shape-key ``shape_values`` (P,)."""
+    R, t = forward_kinematics(result.parents, result.heads, result.frames, params)
+    x = rest + np.einsum("c,cnd->nd", np.asarray(shape_values, dtype=np.float64), result.residual)
+    return skin(result.weights, R, t, x)
+
+
+def evaluate_loads(result, rest, loads) -> np.ndarray:
+    """Positions of the load-driven model (global or pseudo) for loads (M,3) in force units."""
+    loads = np.asarray(loads, dtype=np.float64).reshape(-1, 3)
+    if result.pseudo:
+        out = np.array(rest, dtype=np.float64, copy=True)
+        for k, sub in enumerate(result.pseudo):
+            if np.any(loads[k]):
+                out += evaluate_loads(sub, rest, loads[k:k + 1]) - rest
+        return out
+    if result.kappa is None:
+        raise ValueError("this fit has no loads (tracked scan): pose it with deform()")
+    return deform(result, rest, pose_params_for_loads(result, loads), shape_values_for_loads(result, loads))

@@ -1,0 +1,223 @@
+"""Scan file format v1: a triangle mesh and its displacement fields.
+
+A scan is either a measured discrete Green's function matrix Ξ (3N×3M, paper §3:
+the displacement of every vertex under a unit load along x, y, z at each of M load
+vertices) or a stack of tracked poses (paper §7.2, motion capture of a dense surface).
+Both end up as P displacement fields (P, N, 3), which is all the segmentation needs.
+
+File layout (``.npz``, read with ``allow_pickle=False``):
+
+==================== ============ ==================================================
+key                  shape        meaning
+==================== ============ ==================================================
+``vertices``         (N, 3) float rest positions
+``faces``            (T, 3) int   triangles, 0-based vertex indices
+``greens``           (3N, 3M)     column ``3k+e``: displacement (row ``3i+d``) for a
+                                  unit load along axis e at load vertex k
+``displacements``    (P, N, 3)    tracked fields (deformed − rest); exactly one of
+                                  ``greens`` / ``displacements``
+``load_vertices``    (M,) int     with ``greens``: the load vertex of block column k
+``support_vertices`` (S,) int     optional: clamped vertices (the fixed ground link)
+``probe_load``       ()  float    optional: traction used when measuring (default 1)
+==================== ============ ==================================================
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import numpy as np
+
+FORMAT_VERSION = 1
+_KNOWN_KEYS = {"vertices", "faces", "greens", "displacements", "load_vertices",
+               "support_vertices", "probe_load", "format_version"}
+
+
+class ScanError(ValueError):
+    """Bad scan input; the message names the problem."""
+
+
+@dataclasses.dataclass
+class Scan:
+    vertices: np.ndarray
+    faces: np.ndarray
+    greens: np.ndarray | None = None
+    displacements: np.ndarray | None = None
+    load_vertices: np.ndarray | None = None
+    support_vertices: np.ndarray | None = None
+    probe_load: float = 1.0
+    # filled by validate_scan: indices of triangles with (near) zero area
+    degenerate_faces: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @property
+    def kind(self) -> str:
+        return "greens" if self.greens is not None else "tracked"
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def n_loads(self) -> int:
+        return 0 if self.greens is None else int(self.greens.shape[1] // 3)
+
+    @property
+    def n_fields(self) -> int:
+        if self.greens is not None:
+            return int(self.greens.shape[1])
+        return int(self.displacements.shape[0])
+
+    def field(self, c: int) -> np.ndarray:
+        """Displacement field ``c`` as (N, 3). For a Green's scan this is Ξ e_c p̂ (METHOD §1a)."""
+        if self.greens is not None:
+            return self.greens[:, c].reshape(-1, 3) * self.probe_load
+        return self.displacements[c]
+
+    def fields(self) -> np.ndarray:
+        """All displacement fields, (P, N, 3)."""
+        if self.greens is not None:
+            n = self.n_vertices
+            return (self.greens.reshape(n, 3, -1).transpose(2, 0, 1) * self.probe_load)
+        return self.displacements
+
+
+def _as_float(name, a, ndim):
+    a = np.asarray(a)
+    if a.dtype.kind not in "fiu":
+        raise ScanError(f"{name} must be numeric, got dtype {a.dtype}")
+    if a.ndim != ndim:
+        raise ScanError(f"{name} must have {ndim} dimensions, got shape {a.shape}")
+    a = a.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(a)):
+        bad = int(np.count_nonzero(~np.isfinite(a)))
+        raise ScanError(f"{name} contains {bad} NaN or infinite values")
+    return a
+
+
+def _as_index(name, a, n, ndim=1):
+    a = np.asarray(a)
+    if a.dtype.kind not in "iu":
+        if a.dtype.kind == "f" and a.size and np.all(np.isfinite(a)) and np.all(a == np.round(a)):
+            a = a.astype(np.int64)
+        elif a.size == 0:
+            a = a.astype(np.int64)
+        else:
+            raise ScanError(f"{name} must be integer indices, got dtype {a.dtype}")
+    if a.ndim != ndim:
+        raise ScanError(f"{name} must have {ndim} dimension(s), got shape {a.shape}")
+    a = a.astype(np.int64)
+    if a.size and (a.min() < 0 or a.max() >= n):
+        raise ScanError(f"{name} has indices out of range [0, {n}): min {a.min()}, max {a.max()}")
+    return a
+
+
+def validate_scan(scan: Scan) -> Scan:
+    """Check shapes, dtypes, finiteness and index ranges; return a normalised copy.
+
+    Degenerate triangles (zero area or repeated vertices) are not an error: they are
+    recorded in ``degenerate_faces`` and the fit gives them their neighbours' link
+    (METHOD §2, notes).
+    """
+    v = _as_float("vertices", scan.vertices, 2)
+    if v.shape[1] != 3:
+        raise ScanError(f"vertices must have shape (N, 3), got {v.shape}")
+    n = v.shape[0]
+    if n < 3:
+        raise ScanError(f"the mesh needs at least 3 vertices, got {n}")
+    f = np.asarray(scan.faces)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ScanError(f"faces must be triangles with shape (T, 3), got {f.shape}"
+                        " (non-triangle faces: triangulate the mesh first)")
+    f = _as_index("faces", f, n, ndim=2)
+    if f.shape[0] == 0:
+        raise ScanError("the mesh has no faces")
+    has_g = scan.greens is not None
+    has_d = scan.displacements is not None
+    if has_g == has_d:
+        raise ScanError("a scan needs exactly one of 'greens' or 'displacements', got "
+                        + ("both" if has_g else "neither"))
+    g = d = lv = None
+    if has_g:
+        g = _as_float("greens", scan.greens, 2)
+        if g.shape[0] != 3 * n or g.shape[1] % 3 != 0 or g.shape[1] == 0:
+            raise ScanError(f"greens must have shape (3N, 3M) = (3*{n}, 3*M), got {g.shape}")
+        if scan.load_vertices is None:
+            raise ScanError("a Green's-matrix scan needs 'load_vertices' (M,)")
+        lv = _as_index("load_vertices", scan.load_vertices, n)
+        if lv.shape[0] != g.shape[1] // 3:
+            raise ScanError(f"load_vertices has {lv.shape[0]} entries but greens has "
+                            f"{g.shape[1] // 3} block columns")
+    else:
+        d = _as_float("displacements", scan.displacements, 3)
+        if d.shape[1:] != (n, 3):
+            raise ScanError(f"displacements must have shape (P, N, 3) = (P, {n}, 3), got {d.shape}")
+        if d.shape[0] == 0:
+            raise ScanError("too few fields: the scan has 0 displacement fields, at least 1 is needed")
+        if scan.load_vertices is not None and np.asarray(scan.load_vertices).size:
+            lv = _as_index("load_vertices", scan.load_vertices, n)
+    sv = None
+    if scan.support_vertices is not None and np.asarray(scan.support_vertices).size:
+        sv = _as_index("support_vertices", scan.support_vertices, n)
+    p = float(np.asarray(scan.probe_load))
+    if not np.isfinite(p) or p <= 0:
+        raise ScanError(f"probe_load must be a positive number, got {p}")
+    out = Scan(v, f, g, d, lv, sv, p)
+    # degenerate triangles: area relative to the mesh scale
+    e1 = v[f[:, 1]] - v[f[:, 0]]
+    e2 = v[f[:, 2]] - v[f[:, 0]]
+    area2 = np.linalg.norm(np.cross(e1, e2), axis=1)
+    scale = max(float(np.ptp(v, axis=0).max()), 1e-300)
+    degenerate = area2 <= 1e-12 * scale * scale
+    out.degenerate_faces = np.flatnonzero(degenerate)
+    if out.degenerate_faces.size == f.shape[0]:
+        raise ScanError("every triangle is degenerate (zero area)")
+    fields = out.fields()
+    if not np.any(fields):
+        raise ScanError("too few fields: every displacement field is zero (nothing moves)")
+    return out
+
+
+def load_scan(path: str | os.PathLike) -> Scan:
+    """Read a scan ``.npz`` (never unpickles) and validate it."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise ScanError(f"scan file not found: {path}") from None
+    except ValueError as exc:  # object arrays refused, or not an npz
+        raise ScanError(f"cannot read scan {path}: {exc}") from None
+    except (OSError, EOFError) as exc:
+        raise ScanError(f"cannot read scan {path}: not a valid .npz file ({exc})") from None
+    for key in ("vertices", "faces"):
+        if key not in data:
+            raise ScanError(f"scan {os.path.basename(str(path))} has no '{key}' array")
+    probe = data.get("probe_load", 1.0)
+    if np.ndim(probe) != 0:
+        raise ScanError(f"probe_load must be a scalar, got shape {np.shape(probe)}")
+    return validate_scan(Scan(
+        vertices=data["vertices"], faces=data["faces"],
+        greens=data.get("greens"), displacements=data.get("displacements"),
+        load_vertices=data.get("load_vertices"), support_vertices=data.get("support_vertices"),
+        probe_load=float(probe)))
+
+
+def save_scan(path: str | os.PathLike, scan: Scan) -> None:
+    """Write ``scan`` in format v1 (float64 positions, int64 indices)."""
+    out = {"format_version": np.int64(FORMAT_VERSION),
+           "vertices": np.asarray(scan.vertices, dtype=np.float64),
+           "faces": np.asarray(scan.faces, dtype=np.int64),
+           "probe_load": np.float64(scan.probe_load)}
+    if scan.greens is not None:
+        out["greens"] = np.asarray(scan.greens, dtype=np.float64)
+    if scan.displacements is not None:
+        out["displacements"] = np.asarray(scan.displacements, dtype=np.float64)
+    if scan.load_vertices is not None:
+        out["load_vertices"] = np.asarray(scan.load_vertices, dtype=np.int64)
+    if scan.support_vertices is not None:
+        out["support_vertices"] = np.asarray(scan.support_vertices, dtype=np.int64)
+    np.savez_compressed(path, **out)
