@@ -1,9 +1,23 @@
-# Placeholder until the UI layer lands: keeps the root register() working.
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Blender-facing operators of ArtDef.
+
+* ``io``    — scans stored on meshes (import, read back, shape keys -> scan);
+* ``rig``   — builds/removes the armature, groups, shape keys, drivers, actions;
+* ``props`` — ``Object.artdef`` settings, the fit's record and summary;
+* ``ops``   — the operators ``artdef.import_scan``, ``artdef.fields_from_shape_keys``,
+  ``artdef.fit``, ``artdef.preview_links``, ``artdef.clear_rig``.
+"""
+
+from . import props, ops
+
+_modules = (props, ops)
 
 
 def register():
-    pass
+    for mod in _modules:
+        mod.register()
 
 
 def unregister():
-    pass
+    for mod in reversed(_modules):
+        mod.unregister()

@@ -1,0 +1,298 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Scans stored on Blender meshes.
+
+The scan attached to a mesh is the source of truth for fitting: it lives in
+the mesh data so that it is saved with the .blend file and undone with it.
+
+Layout on ``Mesh`` (all names are public, documented in the README):
+
+* point attribute ``artdef_field_000`` ... (FLOAT_VECTOR): one per field.  For
+  a Green's scan this is the raw Green's column ``greens[:, c].reshape(N, 3)``
+  (displacement per unit load, *not* multiplied by the probe load); for a
+  tracked scan it is the displacement of pose ``c``;
+* point attribute ``artdef_load_index`` (INT): ``k`` on load vertex ``k``,
+  -1 elsewhere (Green's scans only);
+* point attribute ``artdef_support`` (BOOLEAN): support vertices (if any);
+* custom properties ``artdef_kind`` ('greens' | 'tracked'), ``artdef_n_fields``,
+  ``artdef_probe_load``, ``artdef_n_loads``, ``artdef_n_support`` and
+  ``artdef_scan_version``.
+
+The rest shape is the mesh's own vertex positions; the faces are the mesh's
+triangulation (``loop_triangles``), so quads and n-gons work too.
+"""
+
+import hashlib
+import os
+from collections import namedtuple
+
+import bpy
+import numpy as np
+
+from ..artdef_addon import scan as _scan
+
+FIELD_PREFIX = "artdef_field_"
+LOAD_ATTR = "artdef_load_index"
+SUPPORT_ATTR = "artdef_support"
+SCAN_VERSION = 1
+_PROPS = ("artdef_kind", "artdef_n_fields", "artdef_probe_load", "artdef_n_loads",
+          "artdef_n_support", "artdef_scan_version")
+
+#: What :func:`read_scan` returns.  ``tri_polygons[t]`` is the polygon of scan
+#: face ``t``; ``fingerprint`` identifies the scan data (geometry and fields).
+StoredScan = namedtuple("StoredScan", "scan tri_polygons fingerprint")
+
+
+def has_scan(mesh):
+    """True if ``mesh`` (a bpy Mesh) carries an ArtDef scan."""
+    return mesh is not None and mesh.get("artdef_kind") in ("greens", "tracked")
+
+
+def scan_info(mesh):
+    """Cheap summary for the UI (reads only custom properties)."""
+    return {
+        "kind": mesh.get("artdef_kind", ""),
+        "fields": int(mesh.get("artdef_n_fields", 0)),
+        "loads": int(mesh.get("artdef_n_loads", 0)),
+        "support": int(mesh.get("artdef_n_support", 0)),
+        "probe_load": float(mesh.get("artdef_probe_load", 1.0)),
+    }
+
+
+def _field_index(name):
+    if not name.startswith(FIELD_PREFIX):
+        return None
+    tail = name[len(FIELD_PREFIX):]
+    return int(tail) if tail.isdigit() else None
+
+
+def _remove_attribute(mesh, name):
+    attr = mesh.attributes.get(name)
+    if attr is not None:
+        mesh.attributes.remove(attr)
+
+
+def clear_scan(mesh):
+    """Remove the scan attributes and properties from ``mesh``."""
+    for name in [a.name for a in mesh.attributes if _field_index(a.name) is not None]:
+        _remove_attribute(mesh, name)
+    _remove_attribute(mesh, LOAD_ATTR)
+    _remove_attribute(mesh, SUPPORT_ATTR)
+    for key in _PROPS:
+        if key in mesh:
+            del mesh[key]
+
+
+def _new_attribute(mesh, name, type_, domain):
+    attr = mesh.attributes.new(name, type_, domain)
+    if attr is None or attr.name != name:  # too long, or renamed on a clash
+        raise RuntimeError(f"could not create mesh attribute {name!r}")
+    return attr
+
+
+def _field_arrays(scan):
+    """(P, N, 3) float32 arrays exactly as stored (raw Green's columns)."""
+    n = len(scan.vertices)
+    if scan.kind == "greens":
+        g = np.asarray(scan.greens)
+        return g.T.reshape(g.shape[1], n, 3)  # column c -> (N, 3)
+    return np.asarray(scan.displacements)
+
+
+def write_scan(mesh, scan):
+    """Store ``scan``'s fields, loads and supports on ``mesh`` (replacing any).
+
+    The mesh must already have the scan's vertices (same count and order).
+    """
+    n = len(mesh.vertices)
+    if n != len(scan.vertices):
+        raise _scan.ScanError(
+            f"the scan has {len(scan.vertices)} vertices but the mesh has {n}")
+    clear_scan(mesh)
+    fields = _field_arrays(scan)
+    width = max(3, len(str(len(fields) - 1)))
+    for c in range(len(fields)):
+        # Use each attribute right away: creating the next one may reallocate.
+        attr = _new_attribute(mesh, f"{FIELD_PREFIX}{c:0{width}d}", "FLOAT_VECTOR", "POINT")
+        attr.data.foreach_set("vector", np.ascontiguousarray(fields[c], dtype=np.float32).ravel())
+    n_loads = 0
+    if scan.load_vertices is not None and len(scan.load_vertices):
+        index = np.full(n, -1, dtype=np.int32)
+        index[np.asarray(scan.load_vertices)] = np.arange(len(scan.load_vertices), dtype=np.int32)
+        _new_attribute(mesh, LOAD_ATTR, "INT", "POINT").data.foreach_set("value", index)
+        n_loads = len(scan.load_vertices)
+    n_support = 0
+    if scan.support_vertices is not None and len(scan.support_vertices):
+        support = np.zeros(n, dtype=bool)
+        support[np.asarray(scan.support_vertices)] = True
+        _new_attribute(mesh, SUPPORT_ATTR, "BOOLEAN", "POINT").data.foreach_set("value", support)
+        n_support = int(support.sum())
+    mesh["artdef_kind"] = scan.kind
+    mesh["artdef_n_fields"] = len(fields)
+    mesh["artdef_probe_load"] = float(scan.probe_load)
+    mesh["artdef_n_loads"] = n_loads
+    mesh["artdef_n_support"] = n_support
+    mesh["artdef_scan_version"] = SCAN_VERSION
+
+
+def new_mesh_from_scan(name, scan):
+    """A new mesh datablock with the scan's geometry and stored fields."""
+    verts = np.ascontiguousarray(scan.vertices, dtype=np.float32)
+    faces = np.ascontiguousarray(scan.faces, dtype=np.int32)
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise _scan.ScanError("faces must be a non-empty (T, 3) array of triangles")
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise _scan.ScanError("a face refers to a vertex that does not exist")
+    if np.any((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])):
+        raise _scan.ScanError("a face uses the same vertex twice")
+    t = len(faces)
+    mesh = bpy.data.meshes.new(name)
+    try:
+        mesh.vertices.add(len(verts))
+        mesh.vertices.foreach_set("co", verts.ravel())
+        mesh.loops.add(3 * t)
+        mesh.loops.foreach_set("vertex_index", faces.ravel())
+        mesh.polygons.add(t)
+        mesh.polygons.foreach_set("loop_start", np.arange(0, 3 * t, 3, dtype=np.int32))
+        mesh.update(calc_edges=True)
+        write_scan(mesh, scan)
+    except Exception:
+        bpy.data.meshes.remove(mesh)
+        raise
+    return mesh
+
+
+def import_scan_file(context, filepath):
+    """Load a scan file and add it as a new selected, active mesh object.
+
+    Raises ``ScanError`` (with a message naming the problem) before anything
+    is created if the file is not a valid scan.
+    """
+    scan = _scan.load_scan(filepath)
+    name = os.path.splitext(os.path.basename(filepath))[0] or "scan"
+    mesh = new_mesh_from_scan(name, scan)
+    obj = bpy.data.objects.new(mesh.name, mesh)
+    context.collection.objects.link(obj)
+    for other in context.view_layer.objects:
+        if other.select_get():
+            other.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+    return obj, scan
+
+
+def _get(collection, prop, count, dtype, width=1):
+    out = np.empty(count * width, dtype=dtype)
+    collection.foreach_get(prop, out)
+    return out.reshape(count, width) if width > 1 else out
+
+
+def _triangles(mesh):
+    tris = mesh.loop_triangles
+    t = len(tris)
+    faces = _get(tris, "vertices", t, np.int32, 3)
+    polys = _get(tris, "polygon_index", t, np.int32)
+    return faces, polys
+
+
+def read_scan(obj):
+    """Read the scan stored on mesh object ``obj`` back into an ``S.Scan``.
+
+    Raises ``ScanError`` if the object carries no scan or the stored data is
+    inconsistent (e.g. vertices were added after import).
+    """
+    if obj is None or obj.type != 'MESH':
+        raise _scan.ScanError("the active object is not a mesh")
+    mesh = obj.data
+    if not has_scan(mesh):
+        raise _scan.ScanError(
+            f"'{obj.name}' carries no ArtDef scan: import a scan or use Fields from Shape Keys")
+    kind = mesh["artdef_kind"]
+    n_fields = int(mesh.get("artdef_n_fields", -1))
+    n = len(mesh.vertices)
+    stored = {}
+    for attr in mesh.attributes:
+        c = _field_index(attr.name)
+        if c is not None:
+            if attr.domain != 'POINT' or attr.data_type != 'FLOAT_VECTOR':
+                raise _scan.ScanError(f"attribute '{attr.name}' is not a per-vertex vector")
+            stored[c] = attr.name
+    if sorted(stored) != list(range(n_fields)) or n_fields < 1:
+        raise _scan.ScanError(
+            f"'{obj.name}': the scan data is damaged (expected {n_fields} field attributes "
+            f"'{FIELD_PREFIX}...', found {len(stored)})")
+    digest = hashlib.blake2b(digest_size=16)
+    verts = _get(mesh.vertices, "co", n, np.float32, 3)
+    faces, polys = _triangles(mesh)
+    if len(faces) == 0:
+        raise _scan.ScanError(f"'{obj.name}' has no faces")
+    digest.update(verts.tobytes())
+    digest.update(faces.tobytes())
+    fields = np.empty((n_fields, n, 3), dtype=np.float32)
+    for c in range(n_fields):
+        mesh.attributes[stored[c]].data.foreach_get("vector", fields[c].reshape(-1))
+    digest.update(fields.tobytes())
+    load_vertices = support = None
+    attr = mesh.attributes.get(LOAD_ATTR)
+    if attr is not None:
+        index = _get(attr.data, "value", n, np.int32)
+        digest.update(index.tobytes())
+        vert = np.nonzero(index >= 0)[0]
+        order = np.argsort(index[vert], kind="stable")
+        load_vertices = vert[order].astype(np.int64)
+        if not np.array_equal(index[load_vertices], np.arange(len(load_vertices))):
+            raise _scan.ScanError(f"'{obj.name}': the load vertex numbering is damaged")
+    attr = mesh.attributes.get(SUPPORT_ATTR)
+    if attr is not None:
+        flags = _get(attr.data, "value", n, bool)
+        digest.update(flags.tobytes())
+        support = np.nonzero(flags)[0].astype(np.int64)
+    probe = float(mesh.get("artdef_probe_load", 1.0))
+    digest.update(repr((kind, probe)).encode())
+    verts64 = verts.astype(np.float64)
+    faces64 = faces.astype(np.int64)
+    if kind == "greens":
+        if load_vertices is None or 3 * len(load_vertices) != n_fields:
+            raise _scan.ScanError(
+                f"'{obj.name}': a Green's scan needs {n_fields // 3 if n_fields % 3 == 0 else '?'} "
+                f"load vertices marked in '{LOAD_ATTR}'")
+        greens = fields.reshape(n_fields, 3 * n).T.astype(np.float64)
+        scan = _scan.Scan(verts64, faces64, greens=greens, load_vertices=load_vertices,
+                          support_vertices=support, probe_load=probe)
+    else:
+        scan = _scan.Scan(verts64, faces64, displacements=fields.astype(np.float64),
+                          load_vertices=None, support_vertices=support, probe_load=probe)
+    scan = _scan.validate_scan(scan)
+    return StoredScan(scan, polys, digest.hexdigest())
+
+
+def shape_key_poses(obj, skip=()):
+    """(reference key, [pose keys]) of ``obj``'s relative shape keys.
+
+    Keys whose names are in ``skip`` (the residual keys a fit made) are left out.
+    """
+    keys = obj.data.shape_keys
+    if keys is None or not keys.use_relative:
+        return None, []
+    ref = keys.reference_key
+    poses = [kb for kb in keys.key_blocks if kb != ref and kb.name not in skip]
+    return ref, poses
+
+
+def scan_from_shape_keys(obj, skip=()):
+    """A tracked ``S.Scan`` whose fields are the shape keys minus the basis."""
+    ref, poses = shape_key_poses(obj, skip)
+    if ref is None or not poses:
+        raise _scan.ScanError(
+            f"'{obj.name}' needs relative shape keys: a basis and at least one pose")
+    mesh = obj.data
+    n = len(mesh.vertices)
+    verts = _get(mesh.vertices, "co", n, np.float32, 3).astype(np.float64)
+    basis = _get(ref.data, "co", n, np.float32, 3).astype(np.float64)
+    disp = np.empty((len(poses), n, 3))
+    for p, kb in enumerate(poses):
+        disp[p] = _get(kb.data, "co", n, np.float32, 3) - basis
+    faces, _ = _triangles(mesh)
+    if len(faces) == 0:
+        raise _scan.ScanError(f"'{obj.name}' has no faces")
+    scan = _scan.Scan(verts, faces.astype(np.int64), displacements=disp)
+    return _scan.validate_scan(scan), [kb.name for kb in poses]

@@ -1,0 +1,468 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""ArtDef operators (public scripting API: ``bpy.ops.artdef.*``)."""
+
+import threading
+import time
+import traceback
+
+import bpy
+from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper
+
+from ..artdef_addon import fit as _fit
+from ..artdef_addon import scan as _scan
+from . import io, rig
+from .props import MODE_ITEMS, MOTION_ITEMS
+
+#: Extra cancel checks consulted by every fit's progress callback:
+#: ``hook(stage, fraction) -> bool`` (True cancels).  For scripts and tests;
+#: the interactive path cancels with Esc.
+PROGRESS_HOOKS = []
+
+#: Last FitResult per mesh object name (the model behind the rig; for
+#: scripting and tests — not saved in the .blend).
+LAST_RESULTS = {}
+
+#: Segmenter cache for Preview Links: object name -> (fingerprint, Segmenter).
+_SEGMENTERS = {}
+
+
+def last_result(obj):
+    return LAST_RESULTS.get(obj.name)
+
+
+def _active_mesh(context):
+    obj = context.active_object
+    return obj if obj is not None and obj.type == 'MESH' else None
+
+
+def _scan_mesh_poll(cls, context):
+    obj = _active_mesh(context)
+    if obj is None:
+        cls.poll_message_set("Select a mesh object")
+        return False
+    if context.mode != 'OBJECT':
+        cls.poll_message_set("Switch to Object Mode")
+        return False
+    if not io.has_scan(obj.data):
+        cls.poll_message_set("The active mesh carries no ArtDef scan")
+        return False
+    return True
+
+
+# --------------------------------------------------------------------------
+# import
+# --------------------------------------------------------------------------
+
+class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
+    """Import a measured deformation scan (.npz: vertices, faces and a Green's matrix or tracked displacements) as a mesh"""
+    bl_idname = "artdef.import_scan"
+    bl_label = "Import ArtDef Scan"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    filename_ext = ".npz"
+    filter_glob: StringProperty(default="*.npz", options={'HIDDEN'})
+
+    @classmethod
+    def poll(cls, context):
+        if context.mode != 'OBJECT':
+            cls.poll_message_set("Switch to Object Mode")
+            return False
+        return True
+
+    def execute(self, context):
+        t0 = time.perf_counter()
+        try:
+            obj, scan = io.import_scan_file(context, self.filepath)
+        except _scan.ScanError as err:
+            self.report({'ERROR'}, f"Not a valid ArtDef scan: {err}")
+            return {'CANCELLED'}
+        except (OSError, ValueError) as err:
+            self.report({'ERROR'}, f"Could not read '{self.filepath}': {err}")
+            return {'CANCELLED'}
+        loads = 0 if scan.load_vertices is None else len(scan.load_vertices)
+        self.report({'INFO'}, f"Imported '{obj.name}': {len(scan.vertices)} vertices, "
+                              f"{scan.n_fields} {scan.kind} fields, {loads} load points "
+                              f"({time.perf_counter() - t0:.2f} s)")
+        return {'FINISHED'}
+
+
+def menu_import(self, context):
+    self.layout.operator(ARTDEF_OT_import_scan.bl_idname,
+                         text="Articulated Deformation Scan (.npz)")
+
+
+# --------------------------------------------------------------------------
+# fields from shape keys
+# --------------------------------------------------------------------------
+
+class ARTDEF_OT_fields_from_shape_keys(bpy.types.Operator):
+    """Turn the active mesh's shape keys into a tracked scan: each pose key minus the basis becomes a displacement field (the motion-capture use)"""
+    bl_idname = "artdef.fields_from_shape_keys"
+    bl_label = "Fields from Shape Keys"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        obj = _active_mesh(context)
+        if obj is None:
+            cls.poll_message_set("Select a mesh object")
+            return False
+        if context.mode != 'OBJECT':
+            cls.poll_message_set("Switch to Object Mode")
+            return False
+        keys = obj.data.shape_keys
+        if keys is None or len(keys.key_blocks) < 2:
+            cls.poll_message_set("The mesh needs a basis and at least one pose shape key")
+            return False
+        return True
+
+    def execute(self, context):
+        obj = context.active_object
+        skip = {item.name for item in obj.artdef.shape_keys}
+        try:
+            scan, names = io.scan_from_shape_keys(obj, skip)
+            io.write_scan(obj.data, scan)
+        except (_scan.ScanError, ValueError) as err:
+            self.report({'ERROR'}, str(err))
+            return {'CANCELLED'}
+        self.report({'INFO'}, f"'{obj.name}': {len(names)} shape keys stored as a tracked scan "
+                              f"(fields {', '.join(names[:4])}{', ...' if len(names) > 4 else ''})")
+        return {'FINISHED'}
+
+
+# --------------------------------------------------------------------------
+# fit
+# --------------------------------------------------------------------------
+
+class _FitJob:
+    """One fit: the core runs here (possibly in a worker thread); no bpy access."""
+
+    def __init__(self, scan, links, mode, motion, p_max):
+        self.scan, self.links, self.mode, self.motion, self.p_max = scan, links, mode, motion, p_max
+        self.stage, self.fraction = "start", 0.0
+        self.cancel = threading.Event()
+        self.result = None
+        self.error = None
+        self.seconds = 0.0
+        self.thread = None
+
+    def progress(self, stage, fraction):
+        self.stage, self.fraction = stage, float(fraction)
+        if self.cancel.is_set():
+            return True
+        return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))
+
+    def run(self, on_progress=None):
+        def callback(stage, fraction):
+            stop = self.progress(stage, fraction)
+            if on_progress is not None:
+                on_progress(stage, fraction)
+            return stop
+        t0 = time.perf_counter()
+        try:
+            self.result = _fit.fit(self.scan, self.links, mode=self.mode, motion=self.motion,
+                                   p_max=self.p_max, progress=callback)
+        except BaseException as err:  # reported on the main thread
+            self.error = err
+        self.seconds = time.perf_counter() - t0
+
+    def start_thread(self):
+        self.thread = threading.Thread(target=self.run, name="artdef-fit", daemon=True)
+        self.thread.start()
+
+
+class ARTDEF_OT_fit(bpy.types.Operator):
+    """Fit an articulated rig to the active mesh's scan: vertex groups, an armature, residual shape keys, and load controls (Green's scans) or a replay action (tracked scans). Pseudo mode fits each load point separately and builds the rig of the load point chosen by Load Index. Esc cancels without changing the scene"""
+    bl_idname = "artdef.fit"
+    bl_label = "Fit Articulation"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    links: IntProperty(name="Links", default=3, min=1, soft_max=64,
+                       description="Number of rigid links (bones) to fit")
+    mode: EnumProperty(name="Mode", items=MODE_ITEMS, default='GLOBAL',
+                       description="Global fit (default), or the pseudo-articulation of one "
+                                   "load point (Load Index)")
+    motion: EnumProperty(name="Motion", items=MOTION_ITEMS, default='ROBUST',
+                         description="How each link's rigid motion is estimated")
+    p_max: FloatProperty(name="Max Hardening", default=0.0, min=0.0, soft_max=20.0,
+                         description="Strain hardening limit in units of the probe load "
+                                     "(> 1); 0 = off (linear)")
+    load_index: IntProperty(name="Load Index", default=0, min=0,
+                            description="Pseudo mode: the load point whose model becomes the rig")
+
+    _job = None
+    _timer = None
+
+    @classmethod
+    def poll(cls, context):
+        return _scan_mesh_poll(cls, context)
+
+    # -- settings: explicit operator arguments win, else the object's settings
+    def _settings(self, obj):
+        st = obj.artdef
+        for name in ("links", "mode", "motion", "p_max", "load_index"):
+            if not self.properties.is_property_set(name):
+                setattr(self, name, getattr(st, name))
+
+    def _prepare(self, context):
+        """Read the scan and check the settings; returns a job or None (reported)."""
+        obj = context.active_object
+        self._settings(obj)
+        if self.p_max != 0.0 and self.p_max <= 1.0:
+            self.report({'ERROR'}, f"Max Hardening must be 0 (off) or > 1, got {self.p_max:g}")
+            return None
+        try:
+            stored = io.read_scan(obj)
+        except (_scan.ScanError, ValueError) as err:
+            self.report({'ERROR'}, str(err))
+            return None
+        scan = stored.scan
+        if self.mode == 'PSEUDO':
+            if scan.kind != "greens":
+                self.report({'ERROR'}, "Pseudo mode needs a Green's scan (with load points)")
+                return None
+            if self.load_index >= len(scan.load_vertices):
+                self.report({'ERROR'}, f"Load Index {self.load_index} is out of range: the scan has "
+                                       f"{len(scan.load_vertices)} load points")
+                return None
+        job = _FitJob(scan, self.links, self.mode.lower(), self.motion.lower(),
+                      None if self.p_max == 0.0 else float(self.p_max))
+        job.obj_name = obj.name
+        job.tri_polygons = stored.tri_polygons
+        job.fingerprint = stored.fingerprint
+        return job
+
+    def _finish(self, context, job):
+        """Report the job's outcome; on success write the rig.  Main thread only."""
+        err = job.error
+        if isinstance(err, _fit.FitCancelled):
+            self.report({'WARNING'}, "Fit cancelled; the scene is unchanged")
+            return {'CANCELLED'}
+        if isinstance(err, (_scan.ScanError, ValueError)):
+            self.report({'ERROR'}, f"Fit failed: {err}")
+            return {'CANCELLED'}
+        if err is not None:
+            traceback.print_exception(type(err), err, err.__traceback__)
+            self.report({'ERROR'}, f"Fit failed ({type(err).__name__}): {err}")
+            return {'CANCELLED'}
+        obj = bpy.data.objects.get(job.obj_name)
+        if obj is None or obj.type != 'MESH' or len(obj.data.vertices) != len(job.scan.vertices):
+            self.report({'ERROR'}, "The mesh changed while fitting; nothing was created")
+            return {'CANCELLED'}
+        result = job.result
+        model = result
+        load_names = None
+        if self.mode == 'PSEUDO':
+            pseudo = getattr(result, "pseudo", None)
+            if not pseudo or self.load_index >= len(pseudo):
+                self.report({'ERROR'}, "The fit returned no pseudo-articulation for that load point")
+                return {'CANCELLED'}
+            model = pseudo[self.load_index]
+            load_names = [self.load_index]
+        try:
+            rig.build_rig(context, obj, model, job.tri_polygons, job.scan.kind, load_names)
+        except Exception as err:
+            traceback.print_exc()
+            rig.clear_rig(obj)
+            self.report({'ERROR'}, f"Building the rig failed: {err}")
+            return {'CANCELLED'}
+        LAST_RESULTS[obj.name] = model
+        self._store_summary(obj, model, job)
+        self.report({'INFO'}, f"'{obj.name}': {model.n_links} links, rms articulation "
+                              f"{model.rms_articulation:.4g}, rms total {model.rms_total:.4g} "
+                              f"({job.seconds:.2f} s)")
+        return {'FINISHED'}
+
+    def _store_summary(self, obj, model, job):
+        st = obj.artdef
+        st.has_fit = True
+        st.fit_links = int(model.n_links)
+        st.fit_mode = self.mode
+        st.fit_motion = self.motion
+        st.fit_kind = job.scan.kind
+        st.fit_load_index = self.load_index if self.mode == 'PSEUDO' else -1
+        st.fit_p_max = self.p_max
+        st.fit_rms_articulation = float(model.rms_articulation)
+        st.fit_rms_total = float(model.rms_total)
+        st.fit_seconds = job.seconds
+        timings = getattr(model, "timings", None) or getattr(job.result, "timings", None) or {}
+        st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
+        try:
+            st.fit_summary = str(model.summary())
+        except Exception:  # the summary is informative only
+            st.fit_summary = ""
+        # Remember the settings that made this rig.
+        st.links, st.mode, st.motion = self.links, self.mode, self.motion
+        st.p_max, st.load_index = self.p_max, self.load_index
+
+    # -- synchronous path (scripts, background mode) -------------------------
+    def execute(self, context):
+        job = self._prepare(context)
+        if job is None:
+            return {'CANCELLED'}
+        wm = context.window_manager
+        wm.progress_begin(0, 1000)
+        try:
+            job.run(on_progress=lambda s, f: wm.progress_update(int(1000 * min(max(f, 0.0), 1.0))))
+        finally:
+            wm.progress_end()
+        return self._finish(context, job)
+
+    # -- interactive path: worker thread + modal timer, Esc cancels ----------
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        job = self._prepare(context)
+        if job is None:
+            return {'CANCELLED'}
+        self._job = job
+        wm = context.window_manager
+        wm.progress_begin(0, 1000)
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.modal_handler_add(self)
+        job.start_thread()
+        self._status(context, "starting")
+        return {'RUNNING_MODAL'}
+
+    def _status(self, context, text):
+        if context.workspace is not None:
+            context.workspace.status_text_set(
+                None if text is None else f"ArtDef fit: {text} — Esc to cancel")
+
+    def _end(self, context):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        self._status(context, None)
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == 'ESC':
+            job.cancel.set()
+            self._end(context)
+            self.report({'WARNING'}, "Fit cancelled; the scene is unchanged")
+            return {'CANCELLED'}
+        if event.type == 'TIMER':
+            context.window_manager.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0)))
+            self._status(context, f"{job.stage} {100 * job.fraction:.0f}%")
+            if not job.thread.is_alive():
+                self._end(context)
+                return self._finish(context, job)
+            return {'RUNNING_MODAL'}
+        if event.type in {'MIDDLEMOUSE', 'WHEELUPMOUSE', 'WHEELDOWNMOUSE', 'TRACKPADPAN',
+                          'TRACKPADZOOM', 'MOUSEMOVE', 'INBETWEEN_MOUSEMOVE'}:
+            return {'PASS_THROUGH'}  # let the user navigate the view while fitting
+        return {'RUNNING_MODAL'}  # block editing: the fit works on a snapshot
+
+    def cancel(self, context):  # window closed / file loaded while fitting
+        if self._job is not None:
+            self._job.cancel.set()
+        self._end(context)
+
+
+# --------------------------------------------------------------------------
+# preview links
+# --------------------------------------------------------------------------
+
+def _segmenter(obj):
+    stored = io.read_scan(obj)
+    cached = _SEGMENTERS.get(obj.name)
+    if cached is not None and cached[0] == stored.fingerprint:
+        return cached[1], stored, True
+    seg = _fit.Segmenter(stored.scan)
+    _SEGMENTERS[obj.name] = (stored.fingerprint, seg)
+    return seg, stored, False
+
+
+class ARTDEF_OT_preview_links(bpy.types.Operator):
+    """Colour the faces of the active scan by link for a given link count (colour attribute 'artdef_links'); the clustering is cached, so changing the count is fast"""
+    bl_idname = "artdef.preview_links"
+    bl_label = "Preview Links"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    links: IntProperty(name="Links", default=3, min=1, soft_max=64,
+                       description="Number of links to show")
+
+    @classmethod
+    def poll(cls, context):
+        return _scan_mesh_poll(cls, context)
+
+    def invoke(self, context, event):
+        if not self.properties.is_property_set("links"):
+            self.links = context.active_object.artdef.links
+        return self.execute(context)
+
+    def execute(self, context):
+        obj = context.active_object
+        try:
+            seg, stored, cached = _segmenter(obj)
+            labels = seg.labels(self.links)
+        except (_scan.ScanError, ValueError) as err:
+            self.report({'ERROR'}, str(err))
+            return {'CANCELLED'}
+        rig.write_link_colours(obj.data, labels, stored.tri_polygons)
+        obj.data.update()
+        space = context.space_data
+        if space is not None and space.type == 'VIEW_3D' and space.shading.type == 'SOLID':
+            space.shading.color_type = 'VERTEX'  # show the colour attribute
+        self.report({'INFO'}, f"'{obj.name}': {int(labels.max()) + 1} links"
+                              f"{' (cached clustering)' if cached else ''}")
+        return {'FINISHED'}
+
+
+# --------------------------------------------------------------------------
+# clear
+# --------------------------------------------------------------------------
+
+class ARTDEF_OT_clear_rig(bpy.types.Operator):
+    """Remove everything the last fit created on the active mesh (armature, load empties, drivers, actions, ArtDef vertex groups and shape keys, link colours); the scan and the user's data stay"""
+    bl_idname = "artdef.clear_rig"
+    bl_label = "Clear Rig"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        obj = _active_mesh(context)
+        if obj is None:
+            cls.poll_message_set("Select a mesh object")
+            return False
+        if context.mode != 'OBJECT':
+            cls.poll_message_set("Switch to Object Mode")
+            return False
+        if not rig.has_rig(obj):
+            cls.poll_message_set("The active mesh has no ArtDef rig")
+            return False
+        return True
+
+    def execute(self, context):
+        obj = context.active_object
+        rig.clear_rig(obj)
+        LAST_RESULTS.pop(obj.name, None)
+        self.report({'INFO'}, f"'{obj.name}': ArtDef rig removed")
+        return {'FINISHED'}
+
+
+classes = (
+    ARTDEF_OT_import_scan,
+    ARTDEF_OT_fields_from_shape_keys,
+    ARTDEF_OT_fit,
+    ARTDEF_OT_preview_links,
+    ARTDEF_OT_clear_rig,
+)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(menu_import)
+
+
+def unregister():
+    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
+    _SEGMENTERS.clear()
+    LAST_RESULTS.clear()

@@ -1,0 +1,90 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Per-object ArtDef data: fit settings, what the last fit made, its summary.
+
+Registered as ``Object.artdef``.  The record of what a fit created lets
+*Clear Rig* and a re-fit remove exactly that and nothing of the user's.
+"""
+
+import bpy
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
+                       FloatVectorProperty, IntProperty, PointerProperty, StringProperty)
+from bpy.types import PropertyGroup
+
+MODE_ITEMS = (
+    ('GLOBAL', "Global", "One articulated model for all fields (the main path)"),
+    ('PSEUDO', "Pseudo", "Fit each load point separately and build the rig of one load "
+                         "point's model (Load Index)"),
+)
+MOTION_ITEMS = (
+    ('ROBUST', "Robust", "Robust rigid-motion estimate per link (down-weights outliers)"),
+    ('LSQ', "Least Squares", "Plain least-squares rigid motion per link"),
+)
+
+
+class ARTDEF_PG_name(PropertyGroup):
+    """A name recorded in a list (``name`` is built into PropertyGroup)."""
+
+
+class ARTDEF_PG_object(PropertyGroup):
+    # ---- fit settings (shown in the panel, defaults for the operators) ----
+    links: IntProperty(
+        name="Links", default=3, min=1, soft_max=64,
+        description="Number of rigid links (bones) to fit")
+    mode: EnumProperty(name="Mode", items=MODE_ITEMS, default='GLOBAL',
+                       description="Global fit, or per-load-point pseudo-articulation")
+    motion: EnumProperty(name="Motion", items=MOTION_ITEMS, default='ROBUST',
+                         description="How each link's rigid motion is estimated")
+    p_max: FloatProperty(
+        name="Max Hardening", default=0.0, min=0.0, soft_max=20.0,
+        description="Strain hardening limit p_max (in units of the probe load, must be > 1); "
+                    "0 turns hardening off (linear response)")
+    load_index: IntProperty(
+        name="Load Index", default=0, min=0,
+        description="Pseudo mode: which load point's model becomes the rig")
+
+    # ---- what the last fit created (used by Clear Rig / re-fit) ----
+    rig: PointerProperty(type=bpy.types.Object, name="Rig",
+                         description="Armature created by the last fit")
+    made_basis: BoolProperty(default=False, description="The fit added the Basis shape key")
+    shape_keys: CollectionProperty(type=ARTDEF_PG_name)
+    groups: CollectionProperty(type=ARTDEF_PG_name)
+    key_action: PointerProperty(type=bpy.types.Action,
+                                description="Shape-key replay action made by the fit")
+    key_action_previous: PointerProperty(type=bpy.types.Action,
+                                         description="Shape-key action before the fit")
+    old_parent: PointerProperty(type=bpy.types.Object)
+    old_parent_type: StringProperty(default='OBJECT')
+    old_parent_bone: StringProperty()
+    old_parent_inverse: FloatVectorProperty(size=16)
+
+    # ---- last fit summary (panel) ----
+    has_fit: BoolProperty(default=False)
+    fit_links: IntProperty(name="Links")
+    fit_mode: StringProperty(name="Mode")
+    fit_motion: StringProperty(name="Motion")
+    fit_kind: StringProperty(name="Kind")
+    fit_load_index: IntProperty(default=-1)
+    fit_p_max: FloatProperty()
+    fit_rms_articulation: FloatProperty(name="RMS articulation", precision=6,
+                                        description="RMS error of the articulated motion alone")
+    fit_rms_total: FloatProperty(name="RMS total", precision=6,
+                                 description="RMS error of articulation plus residual shape keys")
+    fit_seconds: FloatProperty(name="Time", unit='TIME_ABSOLUTE',
+                               description="Wall time of the fit")
+    fit_timings: StringProperty(description="Seconds per fitting stage")
+    fit_summary: StringProperty(description="The core's summary of the fit")
+
+
+classes = (ARTDEF_PG_name, ARTDEF_PG_object)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Object.artdef = PointerProperty(type=ARTDEF_PG_object)
+
+
+def unregister():
+    del bpy.types.Object.artdef
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,564 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Build (and remove) the Blender rig of a fit.
+
+Everything here runs on the main thread *after* the fit has been computed,
+so a failed or cancelled fit never reaches this module.
+
+What a fit creates, all recorded in ``Object.artdef`` so that Clear Rig and a
+re-fit remove exactly this:
+
+* vertex groups ``artdef_link_XX`` (the seam-blended weights);
+* the armature object ``<mesh>_artdef_rig`` with one deform bone per link
+  (same names as the groups), the mesh parented to it and an Armature
+  modifier ``ArtDef Armature`` at the top of the stack;
+* shape keys ``artdef_field_XXX`` holding the residual (and ``Basis`` if the
+  mesh had none);
+* Green's scans: load empties ``artdef_load_K`` (children of the armature)
+  whose ``location`` is the load vector, with drivers on the bones and the
+  shape keys; tracked scans: actions replaying the input fields at frames
+  1..P (frame 0 = rest);
+* the face colour attribute ``artdef_links``.
+"""
+
+import colorsys
+import math
+
+import bpy
+import numpy as np
+from mathutils import Matrix, Vector
+
+GROUP_FMT = "artdef_link_{:02d}"
+KEY_PREFIX = "artdef_field_"
+LOAD_FMT = "artdef_load_{}"
+MODIFIER_NAME = "ArtDef Armature"
+COLOR_ATTR = "artdef_links"
+SLIDER_RANGE = 10.0          # Blender's hard limit for shape key sliders
+#: Longest driver expression written (Blender keeps 255 characters).  Longer
+#: sums are split into partial sums held in custom properties of the armature.
+MAX_EXPRESSION = 250
+_AXES = "xyz"
+
+
+# --------------------------------------------------------------------------
+# colours
+# --------------------------------------------------------------------------
+
+def link_colours(n):
+    """(n, 4) sRGB colours, well separated, deterministic."""
+    out = np.ones((n, 4))
+    for i in range(n):
+        h = (0.05 + i * 0.618033988749895) % 1.0
+        s = 0.55 if i % 2 == 0 else 0.75
+        v = 0.95 if (i // 2) % 2 == 0 else 0.8
+        out[i, :3] = colorsys.hsv_to_rgb(h, s, v)
+    return out
+
+
+def write_link_colours(mesh, tri_labels, tri_polygons):
+    """Colour polygons by link in the CORNER byte colour attribute ``artdef_links``."""
+    n_poly = len(mesh.polygons)
+    poly_label = np.zeros(n_poly, dtype=np.int64)
+    poly_label[np.asarray(tri_polygons)] = np.asarray(tri_labels)
+    totals = np.empty(n_poly, dtype=np.int32)
+    mesh.polygons.foreach_get("loop_total", totals)
+    corner_label = np.repeat(poly_label, totals)
+    colours = link_colours(int(poly_label.max()) + 1 if n_poly else 1)[corner_label]
+    old = mesh.color_attributes.get(COLOR_ATTR)
+    if old is not None:
+        mesh.color_attributes.remove(old)
+    attr = mesh.color_attributes.new(COLOR_ATTR, 'BYTE_COLOR', 'CORNER')
+    attr.data.foreach_set("color_srgb", np.ascontiguousarray(colours, dtype=np.float32).ravel())
+    mesh.color_attributes.active_color = attr
+    for i, a in enumerate(mesh.color_attributes):
+        if a.name == COLOR_ATTR:
+            mesh.color_attributes.render_color_index = i
+    return attr
+
+
+def remove_link_colours(mesh):
+    attr = mesh.color_attributes.get(COLOR_ATTR)
+    if attr is not None:
+        mesh.color_attributes.remove(attr)
+
+
+# --------------------------------------------------------------------------
+# animation helpers (Blender 4.2 legacy actions and 4.4+ layered actions)
+# --------------------------------------------------------------------------
+
+def _layered(action):
+    return "slots" in action.bl_rna.properties
+
+
+def _new_action(id_data, name):
+    """Assign a new action to ``id_data`` and return a function making F-Curves."""
+    ad = id_data.animation_data or id_data.animation_data_create()
+    action = bpy.data.actions.new(name)
+    ad.action = action
+    if _layered(action):
+        from bpy_extras import anim_utils
+        slot = ad.action_slot
+        if slot is None:
+            slot = action.slots.new(id_type=id_data.id_type, name=id_data.name)
+            ad.action_slot = slot
+        bag = anim_utils.action_ensure_channelbag_for_slot(action, slot)
+
+        def new_fcurve(path, index, group):
+            return bag.fcurves.new(path, index=index, group_name=group)
+    else:
+        def new_fcurve(path, index, group):
+            return action.fcurves.new(path, index=index, action_group=group)
+    return action, new_fcurve
+
+
+def _key_curve(fcurve, frames, values):
+    n = len(frames)
+    fcurve.keyframe_points.add(n)
+    co = np.empty((n, 2), dtype=np.float32)
+    co[:, 0] = frames
+    co[:, 1] = values
+    fcurve.keyframe_points.foreach_set("co", co.ravel())
+    for kp in fcurve.keyframe_points:
+        kp.interpolation = 'LINEAR'
+    fcurve.update()
+
+
+# --------------------------------------------------------------------------
+# drivers
+# --------------------------------------------------------------------------
+
+def _num(x):
+    return "%.9g" % float(x)
+
+
+def _linear_terms(coeffs, var_names):
+    return [f"{_num(c)}*{v}" for c, v in zip(coeffs, var_names) if c != 0.0]
+
+
+def _join(terms):
+    if not terms:
+        return "0"
+    return "+".join(terms).replace("+-", "-")
+
+
+def _add_load_vars(driver, empties, which):
+    """Driver variables ``x<k>``, ``y<k>``, ``z<k>`` reading load empty k's location."""
+    for k, d in which:
+        var = driver.variables.new()
+        var.name = f"{_AXES[d]}{k}"
+        var.type = 'SINGLE_PROP'
+        var.targets[0].id = empties[k]
+        var.targets[0].data_path = f"location[{d}]"
+
+
+def _drive_linear(owner, path, index, coeffs, empties, arm_obj, tag):
+    """Drive ``owner.path[index]`` = sum_c coeffs[c] * load_flat[c].
+
+    One simple expression when it fits Blender's 255 characters, otherwise
+    partial sums in custom properties of ``arm_obj`` added by a SUM driver.
+    """
+    names = [f"{_AXES[c % 3]}{c // 3}" for c in range(len(coeffs))]
+    used = [c for c in range(len(coeffs)) if coeffs[c] != 0.0]
+    chunks, current, length = [], [], 0
+    for c in used:
+        term = len(_num(coeffs[c])) + len(names[c]) + 2
+        if current and length + term > MAX_EXPRESSION:
+            chunks.append(current)
+            current, length = [], 0
+        current.append(c)
+        length += term
+    if current or not chunks:
+        chunks.append(current)
+
+    def fill(driver, cs):
+        driver.type = 'SCRIPTED'
+        _add_load_vars(driver, empties, [(c // 3, c % 3) for c in cs])
+        driver.expression = _join(_linear_terms([coeffs[c] for c in cs], [names[c] for c in cs]))
+
+    fcurve = owner.driver_add(path, index) if index is not None else owner.driver_add(path)
+    if len(chunks) == 1:
+        fill(fcurve.driver, chunks[0])
+        return [fcurve.driver]
+    drivers = []
+    fcurve.driver.type = 'SUM'
+    for i, cs in enumerate(chunks):
+        prop = f"artdef_sum_{tag}_{i}"
+        arm_obj[prop] = 0.0
+        sub = arm_obj.driver_add(f'["{prop}"]')
+        fill(sub.driver, cs)
+        drivers.append(sub.driver)
+        var = fcurve.driver.variables.new()
+        var.name = f"s{i}"
+        var.type = 'SINGLE_PROP'
+        var.targets[0].id = arm_obj
+        var.targets[0].data_path = f'["{prop}"]'
+    drivers.append(fcurve.driver)
+    return drivers
+
+
+def shape_value_expression(k, d, probe_load, p_max):
+    """Simple expression of shape key value c = 3k+d from load k (x<k>, y<k>, z<k>).
+
+    value = h(p_k)[d] / p̂, with h the strain-hardening map (identity when off).
+    """
+    x, y, z = (f"{a}{k}" for a in _AXES)
+    v = f"{_AXES[d]}{k}"
+    if p_max is None:
+        return f"{_num(1.0 / probe_load)}*{v}"
+    # s~ = p_max (1 - q^s), q = (p_max-1)/p_max, s = |p|/p̂  ->  q^s = exp(|p| ln(q)/p̂)
+    rate = math.log((p_max - 1.0) / p_max) / probe_load
+    n = f"sqrt({x}*{x}+{y}*{y}+{z}*{z})"
+    return f"{_num(p_max)}*(1-exp({_num(rate)}*{n}))*{v}/max({n},1e-30)"
+
+
+# --------------------------------------------------------------------------
+# record keeping / clearing
+# --------------------------------------------------------------------------
+
+def has_rig(obj):
+    st = obj.artdef
+    return bool(st.rig or len(st.groups) or len(st.shape_keys) or obj.modifiers.get(MODIFIER_NAME))
+
+
+def _remove_object(ob):
+    data = ob.data
+    action = ob.animation_data.action if ob.animation_data else None
+    bpy.data.objects.remove(ob, do_unlink=True)
+    if data is not None and data.users == 0:
+        if isinstance(data, bpy.types.Armature):
+            bpy.data.armatures.remove(data)
+    if action is not None and action.users == 0 and action.get("artdef_made"):
+        bpy.data.actions.remove(action)
+
+
+def clear_rig(obj):
+    """Remove everything the last fit created on/around mesh object ``obj``."""
+    st = obj.artdef
+    mesh = obj.data
+    world = obj.matrix_world.copy()
+    arm = st.rig
+    # Parent back as before the fit (keeping the mesh where it is).
+    if arm is not None and obj.parent == arm:
+        obj.parent = st.old_parent
+        if st.old_parent is not None:
+            obj.parent_type = st.old_parent_type or 'OBJECT'
+            if st.old_parent_bone:
+                obj.parent_bone = st.old_parent_bone
+            obj.matrix_parent_inverse = Matrix([st.old_parent_inverse[i * 4:i * 4 + 4]
+                                                for i in range(4)])
+        else:
+            obj.matrix_parent_inverse = Matrix.Identity(4)
+        obj.matrix_world = world
+    mod = obj.modifiers.get(MODIFIER_NAME)
+    if mod is not None:
+        obj.modifiers.remove(mod)
+    if arm is not None and arm.get("artdef_rig"):
+        for child in list(arm.children):
+            if child.get("artdef_load") is not None:
+                _remove_object(child)
+        _remove_object(arm)
+    st.rig = None
+    st.old_parent = None
+    st.old_parent_bone = ""
+    for item in st.groups:
+        vg = obj.vertex_groups.get(item.name)
+        if vg is not None:
+            obj.vertex_groups.remove(vg)
+    st.groups.clear()
+    keys = mesh.shape_keys
+    if keys is not None:
+        ad = keys.animation_data
+        if ad is not None:
+            for item in st.shape_keys:
+                path = f'key_blocks["{item.name}"].value'
+                for fc in list(ad.drivers):
+                    if fc.data_path == path:
+                        ad.drivers.remove(fc)
+            if st.key_action is not None and ad.action == st.key_action:
+                ad.action = st.key_action_previous
+        for item in st.shape_keys:
+            kb = keys.key_blocks.get(item.name)
+            if kb is not None:
+                obj.shape_key_remove(kb)
+        if st.made_basis and mesh.shape_keys is not None and len(mesh.shape_keys.key_blocks) == 1:
+            obj.shape_key_clear()
+    if st.key_action is not None and st.key_action.users == 0:
+        bpy.data.actions.remove(st.key_action)
+    st.key_action = None
+    st.key_action_previous = None
+    st.shape_keys.clear()
+    st.made_basis = False
+    remove_link_colours(mesh)
+    st.has_fit = False
+
+
+# --------------------------------------------------------------------------
+# building
+# --------------------------------------------------------------------------
+
+def _fill_vertex_group(obj, name, weights):
+    """Vertex group ``name`` with exact float weights (fast path: attribute_convert)."""
+    mesh = obj.data
+    old = mesh.attributes.get(name)
+    if old is not None:
+        mesh.attributes.remove(old)
+    attr = mesh.attributes.new(name, 'FLOAT', 'POINT')
+    ok = False
+    if attr is not None and attr.name == name:
+        attr.data.foreach_set("value", np.ascontiguousarray(weights, dtype=np.float32))
+        mesh.attributes.active = attr
+        try:
+            with bpy.context.temp_override(object=obj, active_object=obj):
+                ok = 'FINISHED' in bpy.ops.geometry.attribute_convert(mode='VERTEX_GROUP')
+        except RuntimeError:
+            ok = False
+        left = mesh.attributes.get(name)
+        if left is not None and left.domain == 'POINT' and left.data_type == 'FLOAT':
+            mesh.attributes.remove(left)
+    vg = obj.vertex_groups.get(name)
+    if ok and vg is not None:
+        return vg
+    # Fallback (slower, still exact): one add() per distinct weight.
+    if vg is None:
+        vg = obj.vertex_groups.new(name=name)
+    w = np.asarray(weights, dtype=np.float32)
+    nz = np.nonzero(w > 0)[0]
+    values, inverse = np.unique(w[nz], return_inverse=True)
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(values) + 1))
+    for i, value in enumerate(values):
+        vg.add(nz[order[bounds[i]:bounds[i + 1]]].tolist(), float(value), 'REPLACE')
+    return vg
+
+
+def _make_armature(context, obj, result):
+    name = f"{obj.name}_artdef_rig"
+    arm_data = bpy.data.armatures.new(name)
+    arm = bpy.data.objects.new(name, arm_data)
+    arm["artdef_rig"] = True
+    arm["artdef_source"] = obj.name
+    for coll in obj.users_collection:
+        coll.objects.link(arm)
+    if not arm.users_collection:
+        context.scene.collection.objects.link(arm)
+    arm_data.display_type = 'OCTAHEDRAL'
+    arm.show_in_front = True
+    # Same parent and world transform as the mesh: armature space = mesh space.
+    arm.parent = obj.parent
+    if obj.parent is not None:
+        arm.parent_type = obj.parent_type
+        if obj.parent_type == 'BONE':
+            arm.parent_bone = obj.parent_bone
+    arm.matrix_parent_inverse = obj.matrix_parent_inverse.copy()
+    arm.matrix_basis = obj.matrix_basis.copy()
+
+    view_layer = context.view_layer
+    prev_active = view_layer.objects.active
+    selected = [o for o in view_layer.objects if o.select_get()]
+    hidden = arm.hide_get(view_layer=view_layer)
+    arm.hide_set(False)
+    view_layer.objects.active = arm
+    bone_names = []
+    try:
+        with context.temp_override(active_object=arm, object=arm, edit_object=None,
+                                   selected_objects=[arm], selected_editable_objects=[arm]):
+            bpy.ops.object.mode_set(mode='EDIT')
+            if arm.mode != 'EDIT':
+                raise RuntimeError("could not enter edit mode on the new armature "
+                                   "(is its collection hidden or excluded?)")
+            edit = []
+            for l in range(result.n_links):
+                eb = arm_data.edit_bones.new(GROUP_FMT.format(l))
+                head = Vector(result.heads[l])
+                tail = Vector(result.tails[l])
+                frame = np.asarray(result.frames[l])
+                if (tail - head).length < 1e-6:  # Blender deletes zero-length bones
+                    tail = head + Vector(frame[:, 1]) * 1e-3
+                eb.head = head
+                eb.tail = tail
+                eb.align_roll(Vector(frame[:, 2]))
+                eb.use_connect = False
+                eb.use_deform = True
+                edit.append(eb)
+                bone_names.append(eb.name)
+            for l, p in enumerate(result.parents):
+                if p >= 0:
+                    edit[l].parent = edit[int(p)]
+            bpy.ops.object.mode_set(mode='OBJECT')
+    finally:
+        if arm.mode != 'OBJECT':
+            with context.temp_override(active_object=arm, object=arm):
+                bpy.ops.object.mode_set(mode='OBJECT')
+        view_layer.objects.active = prev_active
+        for o in view_layer.objects:
+            o.select_set(o in selected)
+        arm.hide_set(hidden)
+    if len(arm_data.bones) != result.n_links:
+        raise RuntimeError("Blender dropped a bone of the rig (zero length?)")
+    for l in range(result.n_links):
+        pb = arm.pose.bones[bone_names[l]]
+        pb.rotation_mode = 'XYZ'
+        free = result.parents[l] < 0 and not bool(result.grounded[l])
+        pb.lock_location = (not free,) * 3
+    return arm, bone_names
+
+
+def _make_load_empties(obj, arm, result, load_names, size):
+    mesh = obj.data
+    empties = []
+    for k, vert in enumerate(np.asarray(result.load_vertices)):
+        name = LOAD_FMT.format(load_names[k])
+        emp = bpy.data.objects.new(name, None)
+        for coll in arm.users_collection:
+            coll.objects.link(emp)
+        emp["artdef_load"] = int(load_names[k])
+        emp.parent = arm
+        emp.matrix_parent_inverse = Matrix.Identity(4)
+        emp.delta_location = mesh.vertices[int(vert)].co  # rest position: location = load
+        emp.location = (0.0, 0.0, 0.0)
+        emp.empty_display_type = 'SPHERE'
+        emp.empty_display_size = size
+        emp.show_in_front = True
+        emp.hide_render = True
+        emp.lock_rotation = (True, True, True)
+        emp.lock_scale = (True, True, True)
+        empties.append(emp)
+    return empties
+
+
+def build_rig(context, obj, result, tri_polygons, kind, load_names=None):
+    """Create the rig of ``result`` for mesh object ``obj`` (replacing its old rig).
+
+    ``tri_polygons`` maps the scan's triangles to the mesh's polygons; ``kind``
+    is the scan kind ('greens' drives from load empties, 'tracked' replays the
+    fields in actions); ``load_names`` numbers the load empties (defaults to
+    0..M-1; pseudo mode passes the original load index).
+    """
+    clear_rig(obj)
+    st = obj.artdef
+    mesh = obj.data
+    L = int(result.n_links)
+    weights = np.asarray(result.weights, dtype=np.float64)
+    residual = np.asarray(result.residual, dtype=np.float64)
+    n_fields = residual.shape[0]
+
+    # 1. vertex groups
+    for l in range(L):
+        name = GROUP_FMT.format(l)
+        old = obj.vertex_groups.get(name)
+        if old is not None:
+            obj.vertex_groups.remove(old)
+        vg = _fill_vertex_group(obj, name, weights[:, l])
+        st.groups.add().name = vg.name
+
+    # 2. armature, parenting, modifier
+    arm, bone_names = _make_armature(context, obj, result)
+    st.rig = arm
+    st.old_parent = obj.parent
+    st.old_parent_type = obj.parent_type
+    st.old_parent_bone = obj.parent_bone
+    st.old_parent_inverse = [v for row in obj.matrix_parent_inverse for v in row]
+    basis = obj.matrix_basis.copy()
+    obj.parent = arm
+    obj.parent_type = 'OBJECT'
+    obj.matrix_parent_inverse = basis.inverted_safe()
+    mod = obj.modifiers.new(MODIFIER_NAME, 'ARMATURE')
+    mod.object = arm
+    mod.use_vertex_groups = True
+    mod.use_bone_envelopes = False
+    idx = list(obj.modifiers).index(mod)
+    if idx != 0:
+        obj.modifiers.move(idx, 0)
+
+    # 3. residual shape keys
+    if mesh.shape_keys is None:
+        obj.shape_key_add(name="Basis", from_mix=False)
+        st.made_basis = True
+    keys = mesh.shape_keys
+    n = len(mesh.vertices)
+    ref_co = np.empty(3 * n, dtype=np.float32)
+    keys.reference_key.data.foreach_get("co", ref_co)
+    ref_co = ref_co.reshape(n, 3).astype(np.float64)
+    width = max(3, len(str(n_fields - 1)))
+    key_names = []
+    for c in range(n_fields):
+        kb = obj.shape_key_add(name=f"{KEY_PREFIX}{c:0{width}d}", from_mix=False)
+        kb.slider_min = -SLIDER_RANGE
+        kb.slider_max = SLIDER_RANGE
+        kb.value = 0.0
+        kb.data.foreach_set("co", np.ascontiguousarray(ref_co + residual[c], dtype=np.float32).ravel())
+        st.shape_keys.add().name = kb.name
+        key_names.append(kb.name)
+
+    # 4. link colours
+    write_link_colours(mesh, result.face_labels, tri_polygons)
+
+    # 5. load controls or replay
+    if kind == "greens" and result.kappa is not None:
+        _build_load_controls(obj, arm, result, bone_names, key_names, load_names)
+    else:
+        _build_replay(obj, arm, result, bone_names, key_names)
+    return arm
+
+
+def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
+    kappa = np.asarray(result.kappa, dtype=np.float64)
+    m = len(result.load_vertices)
+    if load_names is None:
+        load_names = list(range(m))
+    co = np.empty(3 * len(obj.data.vertices), dtype=np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    extent = float(np.linalg.norm(co.max(0) - co.min(0))) or 1.0
+    empties = _make_load_empties(obj, arm, result, load_names, 0.02 * extent)
+    for l, bname in enumerate(bone_names):
+        pb = arm.pose.bones[bname]
+        for j in range(6):
+            coeffs = kappa[l, j]
+            if not np.any(coeffs):
+                continue
+            path = "rotation_euler" if j < 3 else "location"
+            _drive_linear(pb, path, j % 3, coeffs, empties, arm, f"{l:02d}_{'rl'[j // 3]}{j % 3}")
+    keys = obj.data.shape_keys
+    probe = float(result.probe_load)
+    p_max = None if result.p_max is None else float(result.p_max)
+    for c, kname in enumerate(key_names):
+        k, d = divmod(c, 3)
+        fc = keys.driver_add(f'key_blocks["{kname}"].value')
+        drv = fc.driver
+        drv.type = 'SCRIPTED'
+        _add_load_vars(drv, empties, [(k, 0), (k, 1), (k, 2)])
+        drv.expression = shape_value_expression(k, d, probe, p_max)
+
+
+def _build_replay(obj, arm, result, bone_names, key_names):
+    angles = np.asarray(result.angles, dtype=np.float64)
+    locations = np.asarray(result.locations, dtype=np.float64)
+    p = angles.shape[0]
+    frames = np.arange(p + 1, dtype=np.float64)
+    action, new_fcurve = _new_action(arm, f"{arm.name}_replay")
+    action["artdef_made"] = True
+    action.use_frame_range = True
+    action.frame_start, action.frame_end = 0, p
+    for l, bname in enumerate(bone_names):
+        base = f'pose.bones["{bname}"]'
+        for j in range(3):
+            _key_curve(new_fcurve(f"{base}.rotation_euler", j, bname), frames,
+                       np.r_[0.0, angles[:, l, j]])
+        if not all(arm.pose.bones[bname].lock_location) or np.any(locations[:, l]):
+            for j in range(3):
+                _key_curve(new_fcurve(f"{base}.location", j, bname), frames,
+                           np.r_[0.0, locations[:, l, j]])
+    keys = obj.data.shape_keys
+    st = obj.artdef
+    ad = keys.animation_data
+    st.key_action_previous = ad.action if ad is not None else None
+    kaction, new_kcurve = _new_action(keys, f"{obj.name}_artdef_replay")
+    kaction["artdef_made"] = True
+    kaction.use_frame_range = True
+    kaction.frame_start, kaction.frame_end = 0, p
+    st.key_action = kaction
+    for c, kname in enumerate(key_names):
+        values = np.zeros(p + 1)
+        if c < p:
+            values[c + 1] = 1.0
+        _key_curve(new_kcurve(f'key_blocks["{kname}"].value', 0, "ArtDef"), frames, values)
