@@ -1,0 +1,188 @@
+"""Stage-level checks with known answers: frames, ε, clustering, joints, tree, model, hardening."""
+import numpy as np
+import pytest
+from scipy.cluster.hierarchy import linkage
+from scipy.spatial.transform import Rotation
+
+from artdef_addon import clustering, fit as F, joints, metric, model, samples
+from artdef_addon.frames import relative_motions
+
+
+def _rigid(x, seed=0):
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=seed).as_matrix()
+    t = rng.normal(size=3) * 5
+    return x @ R.T + t, R, t
+
+
+def test_rigid_motion_frames_exact_and_epsilon_zero():
+    scan = samples.make("branching")
+    x1, R, t = _rigid(scan.vertices)
+    Rn, tn = relative_motions(scan.vertices, x1, scan.faces)
+    assert np.allclose(Rn, R, atol=1e-12) and np.allclose(tn, t, atol=1e-10)
+    f = metric.field_features(scan.vertices, x1 - scan.vertices, scan.faces)
+    # zero up to the round-off of the expanded (GEMM) form: sqrt(machine eps) x triangle size
+    rigid_max = metric.condensed_distance(f).max()
+    assert rigid_max < 1e-6
+    articulated = metric.field_features(scan.vertices, scan.displacements[0], scan.faces)
+    assert metric.condensed_distance(articulated).max() > 1e5 * rigid_max
+    r = F.fit(F.Scan(scan.vertices, scan.faces, displacements=(x1 - scan.vertices)[None]), 1)
+    assert r.n_links == 1 and r.rms_articulation < 1e-9
+
+
+def _direct_r(f, x0, x1, faces, b, a):
+    A0 = x0[faces[a]]
+    A1 = x1[faces[a]]
+    return np.linalg.norm(A0 @ f.R[b].T + f.t[b] - A1)
+
+
+def test_epsilon_gemm_matches_definition_and_is_symmetric():
+    scan = samples.make("branching", noise=0.02, bulges=True)
+    u = scan.displacements[0]
+    f = metric.field_features(scan.vertices, u, scan.faces)
+    rng = np.random.default_rng(3)
+    idx = rng.choice(f.n, 40, replace=False)
+    block = metric.distance_block(f, idx, idx)
+    x1 = scan.vertices + u
+    for i in range(0, 40, 7):
+        for j in range(0, 40, 5):
+            a, b = idx[i], idx[j]
+            r = lambda m, tri: _direct_r(f, scan.vertices, x1, scan.faces, m, tri)  # noqa: E731
+            eps = abs(r(b, a) - r(a, a)) + abs(r(a, b) - r(b, b))
+            assert block[i, j] == pytest.approx(eps, abs=1e-9)
+    assert np.allclose(block, block.T, atol=1e-12)
+    assert np.abs(np.diag(block)).max() < 1e-9
+    cond = metric.condensed_distance(f, block_entries=5000)  # many blocks
+    from scipy.spatial.distance import squareform
+    full = squareform(cond)
+    assert np.allclose(full[np.ix_(idx, idx)], block - np.diag(np.diag(block)), atol=1e-9)
+
+
+def test_average_linkage_heights_monotone():
+    scan = samples.make("rod")
+    f = metric.field_features(scan.vertices, scan.displacements[0], scan.faces)
+    Z = linkage(metric.condensed_distance(f), "average")
+    assert np.all(np.diff(Z[:, 2]) >= -1e-12)
+    lab = clustering.cut(Z, f.n, 3)
+    assert len(np.unique(lab)) == 3
+
+
+def test_hinge_only_joint_on_axis_nearest_reference():
+    # two links, every field rotates link b about the same axis through (5, 1, 0) along z
+    P = 4
+    ang = np.radians([10, -20, 30, 15])
+    Rb = Rotation.from_rotvec(np.outer(ang, [0, 0, 1])).as_matrix()
+    c_true = np.array([5.0, 1.0, 0.0])
+    tb = c_true - np.einsum("pij,j->pi", Rb, c_true)
+    Ra = np.tile(np.eye(3), (P, 1, 1))
+    ta = np.zeros((P, 3))
+    c, rms, rank = joints.fit_joint(Ra, ta, Rb, tb, c_ref=np.array([4.0, 0.0, 7.0]))
+    assert rank == 2 and rms < 1e-12
+    assert np.allclose(c, [5.0, 1.0, 7.0], atol=1e-9)  # on the axis, nearest the reference
+
+
+def test_hinge_only_fit_does_not_crash():
+    scan, truth = samples.rod(n_fields=2)
+    # make every field a rotation about z only
+    x0 = scan.vertices
+    fields = []
+    for a in (0.3, -0.2):
+        R = Rotation.from_rotvec([0, 0, a]).as_matrix()
+        w = np.clip((x0[:, 0] - 11) / 2, 0, 1)[:, None]
+        c = np.array([12.0, 0, 0])
+        fields.append(w * ((x0 - c) @ R.T + c - x0))
+    r = F.fit(F.Scan(x0, scan.faces, displacements=np.array(fields)), 2)
+    j = r.joints[1]
+    assert abs(j[0] - 12) < 1e-6 and abs(j[1]) < 1e-6  # on the hinge line x=12, y=0
+
+
+def test_spanning_tree_keeps_exact_zero_cost_edges():
+    # a chain 0-1-2-3 whose joints are exact (cost 0) and a costly shortcut 0-3
+    edges = np.array([[0, 1], [1, 2], [2, 3], [0, 3], [0, 2]])
+    cost = np.array([0.0, 0.0, 1e-13, 5.0, 3.0])
+    parents = joints.spanning_tree(4, edges, cost, np.ones(5, bool), root=0)
+    assert parents.tolist() == [-1, 0, 1, 2]
+
+
+def test_forward_kinematics_roundtrip():
+    rng = np.random.default_rng(0)
+    parents = np.array([-1, 0, 1, 0])
+    heads = rng.normal(size=(4, 3))
+    frames = Rotation.random(4, random_state=1).as_matrix()
+    grounded = np.array([False, False, False, False])
+    params = np.concatenate([rng.uniform(-1, 1, (5, 4, 3)), np.zeros((5, 4, 3))], axis=-1)
+    params[:, 0, 3:] = rng.normal(size=(5, 3))
+    R, t = model.forward_kinematics(parents, heads, frames, params)
+    back = model.params_from_motions(parents, heads, frames, grounded, R, t)
+    R2, t2 = model.forward_kinematics(parents, heads, frames, back)
+    assert np.allclose(R, R2, atol=1e-10) and np.allclose(t, t2, atol=1e-10)
+    # a child's joint moves with its parent: G_parent c = G_child c
+    for p_, c_ in [(0, 1), (1, 2), (0, 3)]:
+        a = np.einsum("pij,j->pi", R[:, p_], heads[c_]) + t[:, p_]
+        b = np.einsum("pij,j->pi", R[:, c_], heads[c_]) + t[:, c_]
+        assert np.allclose(a, b, atol=1e-10)
+
+
+def test_euler_matches_blender_xyz_convention():
+    x, y, z = 0.3, -0.5, 1.1
+    Rx = Rotation.from_rotvec([x, 0, 0]).as_matrix()
+    Ry = Rotation.from_rotvec([0, y, 0]).as_matrix()
+    Rz = Rotation.from_rotvec([0, 0, z]).as_matrix()
+    assert np.allclose(model.euler_to_matrix([x, y, z]), Rz @ Ry @ Rx)
+    assert np.allclose(model.matrix_to_euler(Rz @ Ry @ Rx), [x, y, z])
+
+
+@pytest.mark.parametrize("p_max,s,expected", [(2, 2, 1.5), (2, 10, 1.998), (5, 2, 1.8), (5, 10, 4.463)])
+def test_hardening_table(p_max, s, expected):
+    assert model.harden(s, p_max) == pytest.approx(expected, abs=1e-3)
+    assert model.harden(1.0, p_max) == pytest.approx(1.0)
+    assert model.harden(0.0, p_max) == 0.0
+
+
+def test_weights_rows_sum_to_one_and_blend_at_seams():
+    scan, truth = samples.rod()
+    r = F.fit(scan, 3)
+    assert np.allclose(r.weights.sum(axis=1), 1.0)
+    x = scan.vertices[:, 0]
+    inner = (x > 3) & (x < 9)
+    assert np.all(r.weights[inner, 0] == 1.0)
+    seam = np.isclose(x, 12.0)
+    assert np.all((r.weights[seam, 0] > 0) & (r.weights[seam, 1] > 0))
+
+
+def test_result_roundtrip(tmp_path):
+    scan = samples.make("greens_rod")
+    r = F.fit(scan, 3, mode="pseudo", p_max=2.0)
+    F.save_result(tmp_path / "r.npz", r)
+    back = F.load_result(tmp_path / "r.npz")
+    for name in ("face_labels", "joints", "parents", "weights", "angles", "residual", "kappa", "frames"):
+        assert np.array_equal(getattr(back, name), getattr(r, name), equal_nan=True), name
+    assert back.p_max == 2.0 and back.mode == "pseudo" and len(back.pseudo) == len(r.pseudo)
+    loads = np.random.default_rng(0).normal(size=(scan.n_loads, 3))
+    assert np.allclose(model.evaluate_loads(back, scan.vertices, loads),
+                       model.evaluate_loads(r, scan.vertices, loads))
+    with np.load(tmp_path / "r.npz", allow_pickle=False) as z:
+        assert z["pseudo_face_labels"].shape == (scan.n_loads, scan.n_faces)
+
+
+def test_segmenter_recut_does_not_recompute_distances():
+    scan = samples.make("branching")
+    seg = F.Segmenter(scan)
+    a = seg.labels(11)
+    trees = dict(seg._trees)
+    b = seg.labels(5)
+    assert len(np.unique(a)) == 11 and len(np.unique(b)) == 5
+    assert all(seg._trees[p] is trees[p] for p in trees)
+
+
+def test_cancel_from_progress():
+    scan = samples.make("branching")
+    calls = []
+
+    def progress(stage, frac):
+        calls.append(stage)
+        return stage == "merge"
+
+    with pytest.raises(F.FitCancelled):
+        F.fit(scan, 11, progress=progress)
+    assert "cluster" in calls
