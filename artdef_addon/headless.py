@@ -290,9 +290,10 @@ def _bounds_world(obj, depsgraph):
 
 
 def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
-    """Workbench render of the rest pose: mesh coloured by its active colour
-    attribute (the fit's link colours), bones drawn as octahedral sticks in
-    front of it (armatures themselves are overlays, not rendered)."""
+    """Workbench render of the scene's first frame: the mesh coloured by its
+    active colour attribute (the fit's link colours), the deforming bones, as
+    posed, drawn as octahedral sticks in front of it (armatures are overlays,
+    which renders never show)."""
     bpy = _bpy()
     from mathutils import Vector  # noqa: PLC0415
 
@@ -314,15 +315,17 @@ def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
     if armature is not None:
         mw = armature.matrix_world
         bone_pts = []
-        for bone in armature.data.bones:
-            head, tail = mw @ bone.head_local, mw @ bone.tail_local
+        for pbone in armature.pose.bones:  # posed, like the deformed mesh
+            if not pbone.bone.use_deform:
+                continue
+            head, tail = mw @ pbone.head, mw @ pbone.tail
             bone_pts += [head, tail]
-            ob = _octahedral_bone_mesh(bpy, f"_artdef_bone_{bone.name}", head, tail,
+            ob = _octahedral_bone_mesh(bpy, f"_artdef_bone_{pbone.name}", head, tail,
                                        width=0.06 * (tail - head).length,
                                        color=(0.05, 0.05, 0.05, 1.0), attr_name=attr_name)
             if ob is not None:
                 helpers.append(ob)
-            helpers.append(_joint_ball(bpy, f"_artdef_joint_{bone.name}", head, 0.015 * size,
+            helpers.append(_joint_ball(bpy, f"_artdef_joint_{pbone.name}", head, 0.015 * size,
                                        (0.95, 0.95, 0.95, 1.0), attr_name))
         pts = pts + bone_pts
 

@@ -24,7 +24,13 @@ if (!file) {
   process.exit(2);
 }
 const validator = loadValidator();
-const bytes = new Uint8Array(fs.readFileSync(file));
+let bytes;
+try {
+  bytes = new Uint8Array(fs.readFileSync(file));
+} catch (e) {
+  console.error(`${file}: cannot read: ${e.message}`);
+  process.exit(2);
+}
 validator.validateBytes(bytes, {
   uri: path.basename(file),
   maxIssues: 0,  // no limit
