@@ -23,8 +23,23 @@ PROGRESS_HOOKS = []
 #: scripting and tests — not saved in the .blend).
 LAST_RESULTS = {}
 
-#: Segmenter cache for Preview Links: object name -> (fingerprint, Segmenter).
+#: Segmenter cache shared by Preview Links and Fit: object name ->
+#: (scan fingerprint, Segmenter).  The segmenter holds the expensive pairwise
+#: distances/trees, so changing the link count does not recompute them.
 _SEGMENTERS = {}
+_SEGMENTER_CACHE_SIZE = 2
+
+
+def _cached_segmenter(name, fingerprint):
+    cached = _SEGMENTERS.get(name)
+    return cached[1] if cached is not None and cached[0] == fingerprint else None
+
+
+def _cache_segmenter(name, fingerprint, seg):
+    _SEGMENTERS.pop(name, None)
+    _SEGMENTERS[name] = (fingerprint, seg)
+    while len(_SEGMENTERS) > _SEGMENTER_CACHE_SIZE:
+        _SEGMENTERS.pop(next(iter(_SEGMENTERS)))
 
 
 def last_result(obj):
@@ -138,8 +153,9 @@ class ARTDEF_OT_fields_from_shape_keys(bpy.types.Operator):
 class _FitJob:
     """One fit: the core runs here (possibly in a worker thread); no bpy access."""
 
-    def __init__(self, scan, links, mode, motion, p_max):
+    def __init__(self, scan, links, mode, motion, p_max, segmenter=None):
         self.scan, self.links, self.mode, self.motion, self.p_max = scan, links, mode, motion, p_max
+        self.segmenter = segmenter  # cached one (same scan), or None: made in run()
         self.stage, self.fraction = "start", 0.0
         self.cancel = threading.Event()
         self.result = None
@@ -161,10 +177,15 @@ class _FitJob:
             return stop
         t0 = time.perf_counter()
         try:
+            if self.segmenter is None:
+                self.segmenter = _fit.Segmenter(self.scan, callback)
             self.result = _fit.fit(self.scan, self.links, mode=self.mode, motion=self.motion,
-                                   p_max=self.p_max, progress=callback)
+                                   p_max=self.p_max, progress=callback, segmenter=self.segmenter)
         except BaseException as err:  # reported on the main thread
             self.error = err
+        finally:
+            if self.segmenter is not None:
+                self.segmenter.progress = None  # don't keep this job's callback in the cache
         self.seconds = time.perf_counter() - t0
 
     def start_thread(self):
@@ -227,7 +248,8 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                                        f"{len(scan.load_vertices)} load points")
                 return None
         job = _FitJob(scan, self.links, self.mode.lower(), self.motion.lower(),
-                      None if self.p_max == 0.0 else float(self.p_max))
+                      None if self.p_max == 0.0 else float(self.p_max),
+                      _cached_segmenter(obj.name, stored.fingerprint))
         job.obj_name = obj.name
         job.tri_polygons = stored.tri_polygons
         job.fingerprint = stored.fingerprint
@@ -251,6 +273,7 @@ class ARTDEF_OT_fit(bpy.types.Operator):
             self.report({'ERROR'}, "The mesh changed while fitting; nothing was created")
             return {'CANCELLED'}
         result = job.result
+        _cache_segmenter(job.obj_name, job.fingerprint, job.segmenter)
         model = result
         load_names = None
         if self.mode == 'PSEUDO':
@@ -369,11 +392,12 @@ class ARTDEF_OT_fit(bpy.types.Operator):
 
 def _segmenter(obj):
     stored = io.read_scan(obj)
-    cached = _SEGMENTERS.get(obj.name)
-    if cached is not None and cached[0] == stored.fingerprint:
-        return cached[1], stored, True
+    seg = _cached_segmenter(obj.name, stored.fingerprint)
+    if seg is not None:
+        seg.progress = None
+        return seg, stored, True
     seg = _fit.Segmenter(stored.scan)
-    _SEGMENTERS[obj.name] = (stored.fingerprint, seg)
+    _cache_segmenter(obj.name, stored.fingerprint, seg)
     return seg, stored, False
 
 

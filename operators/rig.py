@@ -281,10 +281,11 @@ def clear_rig(obj):
                 obj.shape_key_remove(kb)
         if st.made_basis and mesh.shape_keys is not None and len(mesh.shape_keys.key_blocks) == 1:
             obj.shape_key_clear()
-    if st.key_action is not None and st.key_action.users == 0:
-        bpy.data.actions.remove(st.key_action)
-    st.key_action = None
+    key_action = st.key_action
+    st.key_action = None  # the pointer itself counts as a user
     st.key_action_previous = None
+    if key_action is not None and key_action.users == 0 and key_action.get("artdef_made"):
+        bpy.data.actions.remove(key_action)
     st.shape_keys.clear()
     st.made_basis = False
     remove_link_colours(mesh)
