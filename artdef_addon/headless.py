@@ -204,7 +204,11 @@ def export_glb(path: str, mesh, armature) -> str:
             export_morph_animation=True,
             export_animations=True,
             export_force_sampling=True,    # drivers -> sampled morph weights
-            export_animation_mode='ACTIONS',
+            # The armature's action and the mesh's shape-key action merged
+            # into ONE glTF animation, so viewers play joints and morph
+            # weights together (ACTIONS would give two unsynchronised ones).
+            export_animation_mode='ACTIVE_ACTIONS',
+            export_nla_strips_merged_animation_name="ArtDef",
             export_vertex_color='ACTIVE',  # link colours as COLOR_0
             export_cameras=False,
             export_lights=False,
