@@ -30,9 +30,20 @@ _SEGMENTERS = {}
 _SEGMENTER_CACHE_SIZE = 2
 
 
+#: Fit jobs started in a worker thread (interactive path); a cancelled one may
+#: still be winding down when the next fit or preview starts.
+_THREAD_JOBS = []
+
+
 def _cached_segmenter(name, fingerprint):
+    """The cached Segmenter for this scan, unless a worker thread still uses it."""
     cached = _SEGMENTERS.get(name)
-    return cached[1] if cached is not None and cached[0] == fingerprint else None
+    if cached is None or cached[0] != fingerprint:
+        return None
+    _THREAD_JOBS[:] = [j for j in _THREAD_JOBS if j.thread.is_alive()]
+    if any(j.segmenter is cached[1] for j in _THREAD_JOBS):
+        return None  # never share one Segmenter between two threads
+    return cached[1]
 
 
 def _cache_segmenter(name, fingerprint, seg):
@@ -85,6 +96,11 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
             return False
         return True
 
+    def invoke(self, context, event):
+        if self.properties.is_property_set("filepath"):  # dropped on the 3D View
+            return self.execute(context)
+        return ImportHelper.invoke(self, context, event)
+
     def execute(self, context):
         t0 = time.perf_counter()
         try:
@@ -100,6 +116,20 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
                               f"{scan.n_fields} {scan.kind} fields, {loads} load points "
                               f"({time.perf_counter() - t0:.2f} s)")
         return {'FINISHED'}
+
+
+if hasattr(bpy.types, "FileHandler"):  # Blender 4.1+: drag and drop of .npz files
+    class ARTDEF_FH_scan(bpy.types.FileHandler):
+        bl_idname = "ARTDEF_FH_scan"
+        bl_label = "ArtDef scan"
+        bl_import_operator = "artdef.import_scan"
+        bl_file_extensions = ".npz"
+
+        @classmethod
+        def poll_drop(cls, context):
+            return context.area is not None and context.area.type == 'VIEW_3D'
+else:
+    ARTDEF_FH_scan = None
 
 
 def menu_import(self, context):
@@ -190,6 +220,7 @@ class _FitJob:
 
     def start_thread(self):
         self.thread = threading.Thread(target=self.run, name="artdef-fit", daemon=True)
+        _THREAD_JOBS.append(self)
         self.thread.start()
 
 
@@ -476,6 +507,8 @@ classes = (
     ARTDEF_OT_preview_links,
     ARTDEF_OT_clear_rig,
 )
+if ARTDEF_FH_scan is not None:
+    classes += (ARTDEF_FH_scan,)
 
 
 def register():

@@ -43,14 +43,23 @@ _AXES = "xyz"
 # colours
 # --------------------------------------------------------------------------
 
+# Twelve clearly different sRGB colours for the first links, then golden-ratio hues.
+_PALETTE = (
+    (0.90, 0.45, 0.20), (0.25, 0.50, 0.90), (0.45, 0.78, 0.30), (0.85, 0.25, 0.55),
+    (0.95, 0.82, 0.25), (0.35, 0.80, 0.85), (0.55, 0.35, 0.80), (0.80, 0.22, 0.22),
+    (0.60, 0.48, 0.32), (0.20, 0.62, 0.55), (0.97, 0.62, 0.78), (0.70, 0.88, 0.55),
+)
+
+
 def link_colours(n):
     """(n, 4) sRGB colours, well separated, deterministic."""
     out = np.ones((n, 4))
     for i in range(n):
-        h = (0.05 + i * 0.618033988749895) % 1.0
-        s = 0.55 if i % 2 == 0 else 0.75
-        v = 0.95 if (i // 2) % 2 == 0 else 0.8
-        out[i, :3] = colorsys.hsv_to_rgb(h, s, v)
+        if i < len(_PALETTE):
+            out[i, :3] = _PALETTE[i]
+        else:
+            h = (0.05 + i * 0.618033988749895) % 1.0
+            out[i, :3] = colorsys.hsv_to_rgb(h, 0.5 + 0.25 * (i % 2), 0.95 - 0.15 * ((i // 2) % 2))
     return out
 
 

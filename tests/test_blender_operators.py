@@ -457,3 +457,114 @@ def test_preview_links_colours_faces_from_cached_clustering(clean_scene, pkg, sa
     assert pkg.ops._SEGMENTERS[obj.name][1] is seg
     attr = obj.data.color_attributes["artdef_links"]
     assert n_colours() == 11
+
+
+def test_rig_follows_mesh_transform_and_parent(clean_scene, pkg, sample_files):
+    from mathutils import Matrix
+    obj = import_scan(sample_files["rod"])
+    rest = rest_positions(obj)
+    holder = bpy.data.objects.new("user_parent", None)
+    bpy.context.scene.collection.objects.link(holder)
+    holder.location = (0.5, -1.0, 2.0)
+    obj.parent = holder
+    obj.location = (1.0, 2.0, 3.0)
+    obj.rotation_euler = (0.3, 0.2, 0.1)
+    obj.scale = (1.5, 1.5, 1.5)
+    bpy.context.view_layer.update()
+    world = obj.matrix_world.copy()
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    bpy.context.view_layer.update()
+    arm = obj.artdef.rig
+    assert arm.parent == holder
+    np.testing.assert_allclose(np.array(arm.matrix_world), np.array(world), atol=1e-6)
+    np.testing.assert_allclose(np.array(obj.matrix_world), np.array(world), atol=1e-6)
+    result = pkg.ops.last_result(obj)
+    bpy.context.scene.frame_set(1)
+    model = pkg.model.deform(result, rest, result.params[0], np.eye(result.residual.shape[0])[0])
+    x = evaluated_positions(obj)  # mesh space = armature space
+    assert np.abs(x - model).max() <= REL_TOL * np.abs(model - rest).max()
+    assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    bpy.context.view_layer.update()
+    assert obj.parent == holder and obj.parent_type == 'OBJECT'
+    np.testing.assert_allclose(np.array(obj.matrix_world), np.array(world), atol=1e-6)
+    assert obj.matrix_parent_inverse == Matrix.Identity(4)
+
+
+def test_fit_job_runs_in_a_thread_and_cancels(pkg, sample_files):
+    """The worker-thread job behind the interactive (modal, Esc) path."""
+    fit_mod = importlib.import_module(pkg.scan.__name__.rsplit(".", 1)[0] + ".fit")
+    scan = pkg.scan.load_scan(sample_files["branching"])
+    job = pkg.ops._FitJob(scan, 11, "global", "robust", None)
+    job.cancel.set()  # Esc before the first progress report
+    job.start_thread()
+    job.thread.join(60)
+    assert not job.thread.is_alive()
+    assert isinstance(job.error, fit_mod.FitCancelled) and job.result is None
+    job = pkg.ops._FitJob(pkg.scan.load_scan(sample_files["rod"]), 3, "global", "robust", None)
+    job.start_thread()
+    job.thread.join(60)
+    assert job.error is None and job.result.n_links == 3
+    assert job.stage == "done" and job.fraction == 1.0
+    assert job.segmenter is not None and job.segmenter.progress is None
+
+
+class _Layout:
+    """Stand-in for UILayout that records what a panel draws and checks names."""
+
+    def __init__(self, log):
+        self.__dict__["log"] = log
+
+    def _sub(self, *args, **kw):
+        return _Layout(self.log)
+
+    box = row = column = split = _sub
+
+    def label(self, text="", **kw):
+        self.log.append(("label", text))
+
+    def separator(self, **kw):
+        pass
+
+    def prop(self, data, name, **kw):
+        assert name in data.bl_rna.properties, name
+        self.log.append(("prop", name))
+
+    def operator(self, idname, **kw):
+        mod, name = idname.split(".")
+        op = getattr(getattr(bpy.ops, mod), name)
+        props = op.get_rna_type().properties
+        self.log.append(("operator", idname, op.poll()))
+
+        class Props:
+            def __setattr__(self, key, value):
+                assert key in props, (idname, key)
+        return Props()
+
+    def __setattr__(self, key, value):
+        assert key in ("scale_y", "use_property_split", "use_property_decorate", "enabled", "alert")
+
+
+def draw_panel():
+    log = []
+    panel = type("P", (), {"layout": _Layout(log)})()
+    bpy.types.ARTDEF_PT_main.draw(panel, bpy.context)
+    return log
+
+
+def test_panel_draws_scan_settings_and_summary(clean_scene, sample_files):
+    log = draw_panel()
+    assert ("operator", "artdef.import_scan", True) in log
+    bpy.ops.mesh.primitive_cube_add()
+    assert ("label", "No scan on this mesh") in draw_panel()
+    import_scan(sample_files["greens_rod"])
+    log = draw_panel()
+    labels = [e[1] for e in log if e[0] == "label"]
+    assert f"Vertices: {len(bpy.context.active_object.data.vertices):,}" in labels
+    assert "Fields: 12" in labels and any(l.startswith("Load points: 4") for l in labels)
+    assert ("operator", "artdef.fit", True) in log
+    assert {("prop", p) for p in ("links", "mode", "motion", "p_max")} <= set(log)
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    labels = [e[1] for e in draw_panel() if e[0] == "label"]
+    assert any(l.startswith("Links: 3") for l in labels)
+    assert any(l.startswith("RMS articulation") for l in labels)
+    assert any(l.startswith("Time:") for l in labels)
