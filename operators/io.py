@@ -265,6 +265,11 @@ def read_scan(obj):
     return StoredScan(scan, polys, digest.hexdigest())
 
 
+def key_points(kb):
+    """Fast foreach access to a shape key's coordinates (``points``, else ``data``)."""
+    return kb.points if "points" in kb.bl_rna.properties else kb.data
+
+
 def shape_key_poses(obj, skip=()):
     """(reference key, [pose keys]) of ``obj``'s relative shape keys.
 
@@ -287,10 +292,10 @@ def scan_from_shape_keys(obj, skip=()):
     mesh = obj.data
     n = len(mesh.vertices)
     verts = _get(mesh.vertices, "co", n, np.float32, 3).astype(np.float64)
-    basis = _get(ref.data, "co", n, np.float32, 3).astype(np.float64)
+    basis = _get(key_points(ref), "co", n, np.float32, 3).astype(np.float64)
     disp = np.empty((len(poses), n, 3))
     for p, kb in enumerate(poses):
-        disp[p] = _get(kb.data, "co", n, np.float32, 3) - basis
+        disp[p] = _get(key_points(kb), "co", n, np.float32, 3) - basis
     faces, _ = _triangles(mesh)
     if len(faces) == 0:
         raise _scan.ScanError(f"'{obj.name}' has no faces")

@@ -27,6 +27,8 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
+from . import io
+
 GROUP_FMT = "artdef_link_{:02d}"
 KEY_PREFIX = "artdef_field_"
 LOAD_FMT = "artdef_load_{}"
@@ -486,7 +488,7 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None):
     keys = mesh.shape_keys
     n = len(mesh.vertices)
     ref_co = np.empty(3 * n, dtype=np.float32)
-    keys.reference_key.data.foreach_get("co", ref_co)
+    io.key_points(keys.reference_key).foreach_get("co", ref_co)
     ref_co = ref_co.reshape(n, 3).astype(np.float64)
     width = max(3, len(str(n_fields - 1)))
     key_names = []
@@ -495,7 +497,7 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None):
         kb.slider_min = -SLIDER_RANGE
         kb.slider_max = SLIDER_RANGE
         kb.value = 0.0
-        kb.data.foreach_set("co", np.ascontiguousarray(ref_co + residual[c], dtype=np.float32).ravel())
+        io.key_points(kb).foreach_set("co", np.ascontiguousarray(ref_co + residual[c], dtype=np.float32).ravel())
         st.shape_keys.add().name = kb.name
         key_names.append(kb.name)
 
