@@ -96,8 +96,11 @@ def test_register_unregister_twice(installed_addon):
         addon_utils.disable(installed_addon, default_set=True, handle_error=errors.append)
         assert not addon_utils.check(installed_addon)[1]
         assert installed_addon not in bpy.context.preferences.addons
+        left = [op for op in dir(bpy.ops.artdef) if not op.startswith("_")]
+        assert not left, f"operators still registered after disable: {left}"
         addon_utils.enable(installed_addon, default_set=True, handle_error=errors.append)
         assert addon_utils.check(installed_addon)[1]
+        assert "fit" in dir(bpy.ops.artdef)
     assert not errors, errors
     # The package's own register()/unregister() pair, called directly, twice.
     mod = sys.modules[installed_addon]
