@@ -15,6 +15,7 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import sys
 import tempfile
 
 NEED_BPY = ("--blend/--glb need Blender: run inside "
@@ -34,6 +35,19 @@ def _bpy():
     except ImportError as ex:
         raise RuntimeError(NEED_BPY) from ex
     return bpy
+
+
+def require_bpy() -> None:
+    """Raise RuntimeError(NEED_BPY) unless ``bpy`` can be imported.  Cheap
+    enough to call before a long fit, so a missing Blender is reported before
+    any work is done or any file is written."""
+    import importlib.util  # noqa: PLC0415
+
+    loaded = sys.modules.get("bpy", False)  # None: import blocked on purpose
+    if loaded:
+        return
+    if loaded is None or importlib.util.find_spec("bpy") is None:
+        raise RuntimeError(NEED_BPY)
 
 
 # --------------------------------------------------------------------------
@@ -449,5 +463,5 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
     return written
 
 
-__all__ = ["build_outputs", "ensure_registered", "save_blend", "export_glb", "render_png",
-           "NEED_BPY"]
+__all__ = ["build_outputs", "require_bpy", "ensure_registered", "save_blend", "export_glb",
+           "render_png", "NEED_BPY"]
