@@ -105,6 +105,26 @@ def test_fit_cli_writes_every_output(fitted):
     assert head == b"BLENDER" or head[:4] == b"\x28\xb5\x2f\xfd", head  # plain or zstd
 
 
+_BLEND_PROBE = """
+import sys, bpy
+bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
+arms = [o for o in bpy.data.objects if o.type == 'ARMATURE']
+meshes = [o for o in bpy.data.objects if o.type == 'MESH']
+assert len(arms) == 1 and len(meshes) == 1, [(o.name, o.type) for o in bpy.data.objects]
+mesh, arm = meshes[0], arms[0]
+print(len([b for b in arm.data.bones if b.use_deform]), len(mesh.data.vertices),
+      mesh.parent == arm, mesh.find_armature() == arm)
+"""
+
+
+def test_blend_reopens_with_the_rig(fitted, rod_scan):
+    proc = _ok(_run(["-c", _BLEND_PROBE, str(fitted["blend"])], cwd=fitted["blend"].parent))
+    bones, verts, parented, deformed = proc.stdout.strip().splitlines()[-1].split()
+    assert int(bones) == LINKS
+    assert int(verts) == np.load(rod_scan)["vertices"].shape[0]
+    assert parented == "True" and deformed == "True"
+
+
 def test_glb_passes_khronos_validator(fitted):
     node = shutil.which("node")
     if node is None:
