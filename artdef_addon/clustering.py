@@ -6,7 +6,7 @@ from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .metric import FieldFeatures, condensed_distance
+from .metric import FieldFeatures, condensed_distance  # noqa: F401  (re-exported)
 
 
 def field_linkage(f: FieldFeatures) -> np.ndarray:

@@ -8,7 +8,8 @@ Every cluster C has, in every field p, a motion centroid m_C^p = argmin_{i∈C} 
 with w_p = 1 / max_t z_p(t) putting each field on a unit scale (A-7), until ``k`` remain. The
 row sums Σ_{j∈C} ε_p(i,j) are kept per triangle and updated on every merge with the cross block
 of the two merged clusters only, so the medoids stay exact at a total cost bounded by one
-pass over the pairwise distances.
+pass over the pairwise distances. Clusters larger than ``MEDOID_SAMPLE`` estimate these sums
+from an evenly spaced subsample (a documented approximation that keeps big links affordable).
 """
 from __future__ import annotations
 
@@ -30,8 +31,12 @@ class _Cancel(Exception):
     pass
 
 
+#: clusters larger than this estimate their medoid sums from this many members
+MEDOID_SAMPLE = 1024
+
+
 def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.ndarray,
-                   k: int, progress=None):
+                   k: int, progress=None, sample: int | None = MEDOID_SAMPLE):
     """Agglomerate the clusters of ``init`` (T,) down to ``k`` on Λ.
 
     Returns ``(labels (T,), medoids (k, P), row_sums (P, T))`` with labels 0..k−1 ordered by
@@ -48,7 +53,7 @@ def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.
             continue
         for m in members:
             if len(m) > 1:
-                sums[p, m] = distance_row_sums(f, m, m)
+                sums[p, m] = distance_row_sums(f, m, m, sample=sample)
     medoid = np.zeros((nc, P), dtype=np.int64)
     for c, m in enumerate(members):
         medoid[c] = m[np.argmin(sums[:, m], axis=1)]
@@ -71,7 +76,7 @@ def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.
         A, B = members[a], members[b]
         for p, f in enumerate(features):
             if weights[p]:
-                sa, sb = cross_sums(f, A, B)
+                sa, sb = cross_sums(f, A, B, sample=sample)
                 sums[p, A] += sa
                 sums[p, B] += sb
         m = np.concatenate([A, B])
@@ -117,7 +122,7 @@ def _lambda(D: np.ndarray, size: np.ndarray) -> np.ndarray:
 
 def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.ndarray, t: np.ndarray,
                  weights: np.ndarray, labels: np.ndarray, adjacency: np.ndarray,
-                 iterations: int = 10) -> np.ndarray:
+                 iterations: int = 10, margin: float = 1.0 + 1e-9) -> np.ndarray:
     """Give each seam triangle to the side of the seam that holds most of its skin weight.
 
     A triangle on a linearly blended seam moves in between its neighbours, so the clustering
@@ -125,8 +130,10 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
     and its neighbours') the weighted error e_l(v) = Σ_p w_p ‖G_l^p x0(v) − x^p(v)‖ of the link's
     robust motion is measured; ŵ_l(v) ∝ 1/e_l(v) recovers the blend weight of a vertex blended
     between two links exactly, and the triangle goes to the link with the largest summed ŵ
-    over its three vertices — the definition of a face's true link in rigged data. Iterated
-    until no seam moves. An addition to the paper (README, "deviations").
+    over its three vertices — the definition of a face's true link in rigged data. A triangle
+    moves only when the new side holds ``margin`` times the weight of its current side (so
+    smoothly blended regions, where the medoid motions are themselves blended, stay as the
+    clustering put them). Iterated until no seam moves. An addition to the paper (README, "deviations").
     """
     labels = labels.copy()
     k = R.shape[1]
@@ -150,7 +157,7 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
         w /= w.sum(axis=0, keepdims=True)
         score = w.sum(axis=2)
         best = score.argmax(axis=0)
-        change = score[best, cols] > score[labels, cols] * (1 + 1e-9)
+        change = score[best, cols] > score[labels, cols] * margin
         if not change.any():
             break
         labels[change] = best[change]

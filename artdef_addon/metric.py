@@ -1,14 +1,18 @@
 """The commutative distance ε between two triangles in one field (paper Eq. 5; METHOD §3).
 
-The residual of motion ν_b applied to triangle a is r(b→a) = ‖ν_b(A0_a) − A1_a‖ over the
-stacked 9-vector of a's three vertices. With the triangle's vertices written as centroid
-plus offsets (a_i = c_a + d_i, Σ d_i = 0) the cross term vanishes and
+The residual of motion ν_b = (R_b, t_b) applied to triangle a is r(b→a) = ‖ν_b(A0_a) − A1_a‖ over
+the stacked 9-vector of a's three vertices. Writing a's vertices as centroid plus offsets
+(a_i = c_a + d_i, Σ d_i = 0) the cross term vanishes, and expanding the square gives an inner
+product of a 17-vector of the motion b with a 17-vector of the triangle a (METHOD §12):
 
-    r²(b→a) = 3 ‖R_b c0_a + t_b − c1_a‖² + Σ_i ‖d_i‖² + ‖d'_i‖² − 2 ⟨R_b, Σ_i d'_i d_iᵀ⟩ ,
+    r²(b→a) = 3‖R_b c0_a + t_b − c1_a‖² + Σ_i ‖d_i‖² + ‖d'_i‖² − 2⟨R_b, Σ_i d'_i d_iᵀ⟩
+            = g(b) · f(a),
+    g(b) = [1, ‖t_b‖², R_bᵀ t_b, vec R_b, t_b]
+    f(a) = [3‖c0_a‖² + 3‖c1_a‖² + s_a, 3, 6 c0_a, −vec(6 c1_a c0_aᵀ + 2 K_a), −6 c1_a]
 
-so every r(b→a) of a block of rows and columns is a few dense matrix products (METHOD §12),
-and the large centroid coordinates never cancel against each other (precision stays at
-round-off of the coordinates, not its square root).
+so all residuals of a block of rows and columns are ONE dense matrix product, then a square
+root. Coordinates are centred (rest and deformed separately; residuals are invariant under
+that) to keep the cancellation in the expanded square at round-off of the object's size.
 
 The distance is ε(a,b) = |r(b→a) − r(a→a)| + |r(a→b) − r(b→b)| (choice A-2: absolute value).
 """
@@ -35,6 +39,8 @@ class FieldFeatures:
     K: np.ndarray      # (T,9) Σ d' dᵀ flattened
     r_self: np.ndarray  # (T,) r(a→a): the triangle's own non-rigidity
     disp: np.ndarray   # (T,) ‖A1 − A0‖ over the 9-vector
+    g: np.ndarray      # (T,17) motion features (rows of the residual product)
+    f: np.ndarray      # (T,17) triangle features (columns of the residual product)
 
     @property
     def n(self) -> int:
@@ -64,19 +70,31 @@ def field_features(x0: np.ndarray, u: np.ndarray, faces: np.ndarray) -> FieldFea
     moved = np.einsum("tab,tib->tia", R, A0) + t[:, None, :]
     r_self = np.sqrt(np.einsum("tij,tij->t", moved - A1, moved - A1))
     disp = np.sqrt(np.einsum("tij,tij->t", A1 - A0, A1 - A0))
-    return FieldFeatures(R, t, c0, c1, s, K, r_self, disp)
+    # centred copies for the product form
+    m0 = x0.mean(axis=0)
+    m1 = x1.mean(axis=0)
+    cc0 = c0 - m0
+    cc1 = c1 - m1
+    tc = t + R @ m0 - m1
+    T = len(t)
+    g = np.empty((T, 17))
+    g[:, 0] = 1.0
+    g[:, 1] = np.einsum("ti,ti->t", tc, tc)
+    g[:, 2:5] = np.einsum("tji,tj->ti", R, tc)
+    g[:, 5:14] = R.reshape(T, 9)
+    g[:, 14:17] = tc
+    fa = np.empty((T, 17))
+    fa[:, 0] = 3 * np.einsum("ti,ti->t", cc0, cc0) + 3 * np.einsum("ti,ti->t", cc1, cc1) + s
+    fa[:, 1] = 3.0
+    fa[:, 2:5] = 6 * cc0
+    fa[:, 5:14] = -(6 * np.einsum("ta,tb->tab", cc1, cc0).reshape(T, 9) + 2 * K)
+    fa[:, 14:17] = -6 * cc1
+    return FieldFeatures(R, t, c0, c1, s, K, r_self, disp, g, fa)
 
 
 def residuals(f: FieldFeatures, rows, cols) -> np.ndarray:
     """r(b→a) for b in ``rows`` (motions) and a in ``cols`` (triangles): (len(rows), len(cols))."""
-    R = f.R[rows]
-    e = (R.reshape(-1, 3) @ f.c0[cols].T).reshape(len(R), 3, -1)
-    e += f.t[rows][:, :, None]
-    e -= f.c1[cols].T[None]
-    r2 = np.einsum("bka,bka->ba", e, e)
-    r2 *= 3.0
-    r2 += f.s[cols][None, :]
-    r2 -= 2.0 * (R.reshape(-1, 9) @ f.K[cols].T)
+    r2 = f.g[rows] @ f.f[cols].T
     np.maximum(r2, 0.0, out=r2)
     return np.sqrt(r2, out=r2)
 
@@ -95,44 +113,89 @@ def distance_block(f: FieldFeatures, rows, cols) -> np.ndarray:
     return a
 
 
+def _workers() -> int:
+    import os
+    try:
+        return max(1, min(4, len(os.sched_getaffinity(0))))
+    except AttributeError:  # not on Linux
+        return max(1, min(4, os.cpu_count() or 1))
+
+
 def condensed_distance(f: FieldFeatures, block_entries: int = BLOCK_ENTRIES,
-                       out: np.ndarray | None = None) -> np.ndarray:
+                       out: np.ndarray | None = None, accumulate: float | None = None) -> np.ndarray:
     """The full ε matrix of one field as a condensed vector (the form ``linkage`` takes).
 
-    Computed in row blocks, each written straight into its slice of the condensed vector
-    (the upper triangle in row-major order), so peak memory is the vector plus one block.
+    Computed in row blocks, each written straight into its slice of the condensed vector (the
+    upper triangle in row-major order), so peak memory is the vector plus one block per thread.
+    With ``accumulate=w`` the block is added as ``out += w·ε`` instead (streaming a weighted sum
+    over fields without a second T² buffer). Blocks run on a few threads: the matrix products
+    and the element-wise numpy passes release the GIL.
     """
     n = f.n
     size = n * (n - 1) // 2
     if out is None:
-        out = np.empty(size, dtype=np.float64)
+        out = np.zeros(size, dtype=np.float64) if accumulate is not None else np.empty(size, dtype=np.float64)
     step = max(1, block_entries // max(n, 1))
     start = lambda i: i * n - i * (i + 1) // 2  # noqa: E731  condensed offset of row i
-    for i0 in range(0, n - 1, step):
+
+    def work(i0):
         i1 = min(n - 1, i0 + step)
         rows = np.arange(i0, i1)
         cols = np.arange(i0, n)
         blk = distance_block(f, rows, cols)
         mask = cols[None, :] > rows[:, None]
-        out[start(i0):start(i1)] = blk[mask]
+        if accumulate is None:
+            out[start(i0):start(i1)] = blk[mask]
+        else:
+            out[start(i0):start(i1)] += accumulate * blk[mask]
+
+    starts = range(0, n - 1, step)
+    workers = _workers()
+    if workers > 1 and len(starts) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(workers) as ex:
+            list(ex.map(work, starts))
+    else:
+        for i0 in starts:
+            work(i0)
     return out
 
 
-def distance_row_sums(f: FieldFeatures, rows, cols, block_entries: int = BLOCK_ENTRIES) -> np.ndarray:
-    """Σ_{j∈cols} ε(i, j) for every i in ``rows`` without forming the whole block at once."""
+def _subsample(idx: np.ndarray, cap: int | None) -> np.ndarray:
+    if cap is None or len(idx) <= cap:
+        return idx
+    return idx[np.linspace(0, len(idx) - 1, cap).astype(np.int64)]
+
+
+def distance_row_sums(f: FieldFeatures, rows, cols, block_entries: int = BLOCK_ENTRIES,
+                      sample: int | None = None) -> np.ndarray:
+    """Σ_{j∈cols} ε(i, j) for every i in ``rows`` without forming the whole block at once.
+
+    With ``sample`` the sum over a large ``cols`` is estimated from ``sample`` evenly spaced
+    members, scaled to the full count (a CLARA-style medoid estimate for big clusters).
+    """
     rows = np.asarray(rows)
     cols = np.asarray(cols)
+    sub = _subsample(cols, sample)
+    scale = len(cols) / max(len(sub), 1)
     out = np.zeros(len(rows))
-    step = max(1, block_entries // max(len(cols), 1))
+    step = max(1, block_entries // max(len(sub), 1))
     for i0 in range(0, len(rows), step):
-        out[i0:i0 + step] = distance_block(f, rows[i0:i0 + step], cols).sum(axis=1)
-    return out
+        out[i0:i0 + step] = distance_block(f, rows[i0:i0 + step], sub).sum(axis=1)
+    return out * scale
 
 
-def cross_sums(f: FieldFeatures, A, B, block_entries: int = BLOCK_ENTRIES):
-    """Row and column sums of the ε block A×B: (Σ_{j∈B} ε(i,j) for i∈A, Σ_{i∈A} ε(i,j) for j∈B)."""
+def cross_sums(f: FieldFeatures, A, B, block_entries: int = BLOCK_ENTRIES, sample: int | None = None):
+    """Row and column sums of the ε block A×B: (Σ_{j∈B} ε(i,j) for i∈A, Σ_{i∈A} ε(i,j) for j∈B).
+
+    Exact unless both sides exceed ``sample``; then each sum is estimated from a subsample of
+    the other side.
+    """
     A = np.asarray(A)
     B = np.asarray(B)
+    if sample is not None and len(A) > sample and len(B) > sample:
+        return (distance_row_sums(f, A, B, block_entries, sample),
+                distance_row_sums(f, B, A, block_entries, sample))
     sa = np.zeros(len(A))
     sb = np.zeros(len(B))
     step = max(1, block_entries // max(len(B), 1))

@@ -317,3 +317,39 @@ def make_with_truth(name: str, **kw):
 def make(name: str, **kw) -> Scan:
     """A built-in sample scan (see module docstring)."""
     return make_with_truth(name, **kw)[0]
+
+
+def random_poses(vertices, weights, joints, parents, n_fields: int = 20, max_deg: float = 45.0,
+                 seed: int = 0, root_motion: bool = True):
+    """Displacements (P, N, 3) of random poses of a rigged mesh by linear blend skinning.
+
+    Every bone rotates about its rest head by a random axis and an angle up to ``max_deg``;
+    roots also translate when ``root_motion``. Used to make fresh tracked scans with a known
+    skeleton from the shared rigged models.
+    """
+    rng = np.random.default_rng(seed)
+    J = len(parents)
+    order = []
+    seen = set()
+    while len(order) < J:
+        for j in range(J):
+            if j not in seen and (parents[j] < 0 or parents[j] in seen):
+                order.append(j)
+                seen.add(j)
+    diag = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    out = np.zeros((n_fields,) + vertices.shape)
+    for p in range(n_fields):
+        R = np.zeros((J, 3, 3))
+        t = np.zeros((J, 3))
+        for j in order:
+            Rj = Rotation.from_rotvec(_random_axis(rng) * np.radians(rng.uniform(0, max_deg))).as_matrix()
+            c = joints[j]
+            q = parents[j]
+            if q < 0:
+                R[j] = Rj
+                t[j] = c - Rj @ c + (rng.uniform(-0.1, 0.1, 3) * diag if root_motion else 0.0)
+            else:
+                R[j] = R[q] @ Rj
+                t[j] = R[q] @ (c - Rj @ c) + t[q]
+        out[p] = _skin(vertices, weights, R, t) - vertices
+    return out

@@ -15,11 +15,12 @@ def _truth_angles(result, truth):
     return out
 
 
+@pytest.mark.parametrize("strategy", F.STRATEGIES)
 @pytest.mark.parametrize("blend", [1.0, 2.0])
-def test_table1_rod_robust_exact_lsq_biased(blend, capsys):
+def test_table1_rod_robust_exact_lsq_biased(blend, strategy, capsys):
     scan, truth = samples.rod(blend=blend)
-    robust = F.fit(scan, 3, motion="robust")
-    lsq = F.fit(scan, 3, motion="lsq")
+    robust = F.fit(scan, 3, motion="robust", strategy=strategy)
+    lsq = F.fit(scan, 3, motion="lsq", strategy=strategy)
     length = 36.0
     assert quality.adjusted_rand_index(robust.face_labels, truth["face_labels"]) == 1.0
     # links come out ordered along the rod; chain ground - 1 - 2 - 3
@@ -31,7 +32,7 @@ def test_table1_rod_robust_exact_lsq_biased(blend, capsys):
     assert lsq_err.max() > 1e-3, "least squares should be visibly biased by the blended seams"
     assert lsq.parents.tolist() == [-1, 0, 1]
     with capsys.disabled():
-        print(f"\nTable 1 (blend half-width {blend}): joint | true | LSQ | robust")
+        print(f"\nTable 1 (blend half-width {blend}, {strategy}): joint | true | LSQ | robust")
         for j in range(3):
             print(f"  {j + 1} | {truth['joints'][j]} | {np.round(lsq.joints[j], 4)} | {np.round(robust.joints[j], 6)}")
 
@@ -53,21 +54,22 @@ def _check_branching(result, truth, diag, tol=0.01):
 @pytest.mark.parametrize("kw", [dict(), dict(noise=0.02, bulges=True), dict(disconnected=True),
                                 dict(disconnected=True, noise=0.02, bulges=True)],
                          ids=["clean", "noisy", "disconnected", "disconnected-noisy"])
-def test_branching_links_joints_tree(kw):
+@pytest.mark.parametrize("strategy", F.STRATEGIES)
+def test_branching_links_joints_tree(kw, strategy):
     scan, truth = samples.branching(**kw)
     if kw.get("disconnected"):
         from artdef_addon.clustering import face_adjacency, split
         comps = split(np.zeros((1, scan.faces.shape[0]), int), face_adjacency(scan.faces))
         assert comps.max() + 1 == 6, "hub and five separate arms"
-    result = F.fit(scan, 11)
+    result = F.fit(scan, 11, strategy=strategy)
     _check_branching(result, truth, np.linalg.norm(np.ptp(scan.vertices, axis=0)))
 
 
-@pytest.mark.parametrize("mode", ["global", "pseudo"])
-@pytest.mark.parametrize("p_max", [None, 3.0])
-def test_greens_reproduces_columns(mode, p_max):
+@pytest.mark.parametrize("mode,p_max,strategy", [("global", None, "auto"), ("global", 3.0, "paper"),
+                                                 ("pseudo", None, "paper"), ("pseudo", 3.0, "auto")])
+def test_greens_reproduces_columns(mode, p_max, strategy):
     scan = samples.make("greens_rod", probe_load=2.0)
-    result = F.fit(scan, 3, mode=mode, p_max=p_max)
+    result = F.fit(scan, 3, mode=mode, p_max=p_max, strategy=strategy)
     fields = scan.fields()
     M = scan.n_loads
     scale = np.abs(fields).max()
