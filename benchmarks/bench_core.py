@@ -1,0 +1,212 @@
+"""Core benchmark (issue 2, and the sizes of issue 6): prints figures, asserts nothing.
+
+(a) ε throughput: ``metric.condensed_distance`` for one field of T triangles (every pair,
+    both residual directions, the |·| distance, packed into the condensed vector) against a plain
+    dense product ``A @ B.T`` of two (T, 17) float64 arrays into a T×T result — the same inner
+    dimension and output shape as the residual GEMM. Median seconds of ``--repeats`` runs.
+(b) End to end: ``fit.fit`` on generated articulated scans (``generate.branching_scan``, 11 links)
+    of about 1k, 5k, 20k triangles × 10 and 50 fields; seconds per stage, peak resident memory of
+    a fresh subprocess per case (``VmHWM``, and the part above the resident size just before the
+    fit), the adjusted Rand index against the true face labels and the articulation-only error.
+
+Usage (from the repository root):
+
+    .venv/bin/python benchmarks/bench_core.py            # full: 1k/5k/20k × 10/50 (minutes)
+    .venv/bin/python benchmarks/bench_core.py --quick    # 1k/5k × 10/50, T up to 5k for (a)
+    .venv/bin/python benchmarks/bench_core.py --sizes 20000 --fields 20 --skip-eps
+
+Results are also written as Markdown to ``benchmarks/results/bench_core.md`` (``--out``).
+"""
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
+
+from artdef_addon import fit as F, metric, quality  # noqa: E402
+from generate import branching_scan  # noqa: E402
+
+
+def _status_kb(field: str) -> int:
+    """A line of /proc/self/status in kB (VmRSS now, VmHWM peak); falls back to getrusage."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    import resource
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+
+def _median_time(fn, repeats: int) -> float:
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
+# ----------------------------------------------------------------------------- (a)
+def bench_eps(sizes, repeats: int):
+    rows = []
+    rng = np.random.default_rng(0)
+    for target in sizes:
+        scan, _ = branching_scan(target, n_fields=1, seed=1)
+        T = scan.n_faces
+        f = metric.field_features(scan.vertices, scan.displacements[0], scan.faces)
+        t_eps = _median_time(lambda: metric.condensed_distance(f), repeats)
+        A = rng.standard_normal((T, 17))
+        B = rng.standard_normal((T, 17))
+        t_gemm = _median_time(lambda: A @ B.T, repeats)
+        pairs = T * (T - 1) // 2
+        rows.append(dict(T=T, eps_s=t_eps, eps_pairs_s=pairs / t_eps, gemm_s=t_gemm, gemm_entries_s=T * T / t_gemm,
+                         ratio=t_eps / t_gemm))
+        r = rows[-1]
+        print(f"  T={T:6d}: condensed ε {r['eps_s']:.3f} s ({r['eps_pairs_s']:.3g} pairs/s), "
+              f"A@B.T {r['gemm_s']:.3f} s ({r['gemm_entries_s']:.3g} entries/s), ratio {r['ratio']:.2f}", flush=True)
+    return rows
+
+
+def eps_table(rows) -> str:
+    out = ["| triangles | pairs T(T−1)/2 | condensed ε (s) | ε pairs/s | A@Bᵀ T×T (s) | GEMM entries/s | ratio ε / GEMM |",
+           "|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        out.append(f"| {r['T']:,} | {r['T'] * (r['T'] - 1) // 2:,} | {r['eps_s']:.3f} | {r['eps_pairs_s']:.3g} | "
+                   f"{r['gemm_s']:.3f} | {r['gemm_entries_s']:.3g} | {r['ratio']:.2f} |")
+    return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------- (b)
+def run_case(target: int, n_fields: int, strategy: str, weights: str | None) -> dict:
+    """One end-to-end fit in this process (called in a fresh subprocess by the driver)."""
+    t0 = time.perf_counter()
+    scan, truth = branching_scan(target, n_fields=n_fields, seed=7)
+    t_gen = time.perf_counter() - t0
+    rss0 = _status_kb("VmRSS")
+    kw = dict(strategy=strategy)
+    if weights is not None:
+        kw["weights"] = weights
+    res = F.fit(scan, truth["n_links"], **kw)
+    peak = _status_kb("VmHWM")
+    ari = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
+    return dict(T=scan.n_faces, N=scan.n_vertices, P=n_fields, generate_s=t_gen, timings=res.timings,
+                peak_mb=peak / 1024, rss_before_mb=rss0 / 1024, ari=ari, links=res.n_links,
+                kg=res.articulation_error_percent, weights=weights or "default")
+
+
+def bench_fit(sizes, fields, repeats: int, strategy: str, weights: str | None, big: int):
+    rows = []
+    for target in sizes:
+        for P in fields:
+            n = repeats if target < big else 1
+            runs = []
+            for _ in range(n):
+                cmd = [sys.executable, os.path.abspath(__file__), "--case", str(target), str(P), "--strategy", strategy]
+                if weights:
+                    cmd += ["--weights", weights]
+                cp = subprocess.run(cmd, capture_output=True, text=True)
+                if cp.returncode != 0:
+                    print(f"  {target}×{P}: FAILED\n{cp.stderr[-2000:]}", flush=True)
+                    break
+                runs.append(json.loads(cp.stdout.strip().splitlines()[-1]))
+            if not runs:
+                continue
+            stages = {k: statistics.median(r["timings"][k] for r in runs) for k in runs[0]["timings"]}
+            row = dict(runs[0], timings=stages, peak_mb=max(r["peak_mb"] for r in runs), repeats=len(runs))
+            rows.append(row)
+            st = ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
+            print(f"  T={row['T']:6d} P={P:3d} (median of {len(runs)}): {st} s; peak RSS {row['peak_mb']:.0f} MB "
+                  f"(+{row['peak_mb'] - row['rss_before_mb']:.0f} over the loaded scan); ARI {row['ari']:.4f}; "
+                  f"articulation error {row['kg']:.2f}%", flush=True)
+    return rows
+
+
+def fit_table(rows) -> str:
+    names = ["features", "cluster", "merge", "joints", "model"]
+    extra = sorted({k for r in rows for k in r["timings"]} - set(names) - {"total"})
+    cols = names + extra
+    out = ["| triangles | fields | " + " | ".join(f"{c} (s)" for c in cols) +
+           " | total (s) | peak RSS (MB) | Δ RSS in fit (MB) | ARI | articulation error (%) | runs |",
+           "|---:|---:|" + "---:|" * (len(cols) + 6)]
+    for r in rows:
+        t = r["timings"]
+        out.append(f"| {r['T']:,} | {r['P']} | " + " | ".join(f"{t.get(c, 0.0):.2f}" for c in cols) +
+                   f" | {t['total']:.2f} | {r['peak_mb']:.0f} | {r['peak_mb'] - r['rss_before_mb']:.0f} | "
+                   f"{r['ari']:.4f} | {r['kg']:.2f} | {r['repeats']} |")
+    return "\n".join(out)
+
+
+def machine() -> str:
+    try:
+        import threadpoolctl  # noqa: F401
+        blas = "; ".join(f"{d['internal_api']} {d['num_threads']} threads"
+                         for d in threadpoolctl.threadpool_info())
+    except Exception:
+        blas = "BLAS threads: default"
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return (f"{platform.machine()}, {cores} cores, Python {platform.python_version()}, numpy {np.__version__}, "
+            f"{blas}. The machine was shared with other jobs, so timings are noisy.")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description="artdef core benchmark: ε throughput and end-to-end fits.")
+    ap.add_argument("--quick", action="store_true", help="1k and 5k triangles only")
+    ap.add_argument("--sizes", help="comma-separated target triangle counts (default 1000,5000,20000)")
+    ap.add_argument("--fields", default="10,50", help="comma-separated field counts for (b)")
+    ap.add_argument("--repeats", type=int, default=3, help="repeats per timing (median); fits above --big run once")
+    ap.add_argument("--big", type=int, default=10000, help="fits of at least this many triangles run once")
+    ap.add_argument("--strategy", default="auto", help="fit strategy (auto|summed|paper)")
+    ap.add_argument("--weights", default=None, help="fit weights= option, when the core has it (e.g. refined)")
+    ap.add_argument("--skip-eps", action="store_true")
+    ap.add_argument("--skip-fit", action="store_true")
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_core.md"))
+    ap.add_argument("--case", nargs=2, type=int, metavar=("TRIANGLES", "FIELDS"), help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.case:
+        print(json.dumps(run_case(a.case[0], a.case[1], a.strategy, a.weights)))
+        return
+    if a.weights and "weights" not in inspect.signature(F.fit).parameters:
+        print(f"note: this core's fit() has no weights= option; ignoring --weights {a.weights}")
+        a.weights = None
+    sizes = [int(s) for s in a.sizes.split(",")] if a.sizes else ([1000, 5000] if a.quick else [1000, 5000, 20000])
+    fields = [int(s) for s in a.fields.split(",")]
+    print("machine:", machine())
+    md = ["# bench_core results", "", machine(), ""]
+    t_all = time.perf_counter()
+    if not a.skip_eps:
+        print("(a) ε throughput, one field:", flush=True)
+        rows = bench_eps(sizes, a.repeats)
+        md += ["## ε throughput (one field)", "", eps_table(rows), ""]
+        print(eps_table(rows))
+    if not a.skip_fit:
+        print(f"(b) end-to-end fit, 11 links, strategy {a.strategy}, a fresh process per case:", flush=True)
+        rows = bench_fit(sizes, fields, a.repeats, a.strategy, a.weights, a.big)
+        md += [f"## End-to-end fit (generated branching object, 11 links, strategy {a.strategy}"
+               + (f", weights {a.weights}" if a.weights else "") + ")", "", fit_table(rows), ""]
+        print(fit_table(rows))
+    md.append(f"Benchmark wall time: {time.perf_counter() - t_all:.0f} s.")
+    print(md[-1])
+    if a.out:
+        os.makedirs(os.path.dirname(a.out), exist_ok=True)
+        with open(a.out, "w") as fh:
+            fh.write("\n".join(md) + "\n")
+        print("wrote", a.out)
+
+
+if __name__ == "__main__":
+    main()
