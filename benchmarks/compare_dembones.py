@@ -1,0 +1,372 @@
+"""artdef against Dem Bones (``py-dem-bones``, SSDR) on the same tracked scans (issue 5).
+
+Prints, per scan, side by side: time, articulation-only reconstruction error (Karni–Gotsman
+percentage, one formula for both methods), links/bones found, and where the truth is known the
+segmentation agreement (adjusted Rand index against the true face labels) and the joint error.
+Then the "never collapses" count over 20 random pose sets of the three-link rod.
+
+Scans: every ``*.npz`` under ``--data`` (default ``../shared/data`` beside the repository), plus
+fresh random poses (``samples.random_poses``, 20 fields, up to 45° a bone) of the rigged
+single-root sets. artdef and Dem Bones get the same number of links/bones: the number of true
+links (bones owning a face) where the truth is known, ``--bone-count`` (default 10, the middle
+of the 5/10/20 that Dem Bones' own example runs on its sample animation) for ``dembones_bone``.
+
+Error: X (P, N, 3) the deformed positions, X̄ the per-vertex mean over fields, X̂ the
+articulation only (no residual shapes), error = 100·‖X − X̂‖_F / ‖X − X̄‖_F. For artdef
+X̂ = Σ_l w_l G_l x0 with G the forward kinematics of the fitted pose parameters; for Dem Bones
+X̂ = Σ_b w_b M_b x0 with its per-frame bone matrices.
+
+Joint error (artdef only; Dem Bones gives no joints): for each true joint between two bones that
+both own faces, the distance from the true joint (the child bone's rest head) to the fitted joint
+between the fitted links matched to those bones (each true link → the fitted link that holds most
+of its triangles), as % of the bounding-box diagonal. When both true bones fall in one fitted link
+the joint counts as missed.
+
+Usage (from the repository root):
+
+    .venv/bin/python benchmarks/compare_dembones.py [--data ../shared/data] [--quick]
+
+``--quick`` skips the scans above 10k triangles. The Markdown tables are written to
+``benchmarks/results/compare_dembones.md`` (``--out``).
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import inspect
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, ROOT)
+
+from artdef_addon import fit as F, model, quality, samples  # noqa: E402
+from artdef_addon.scan import Scan, ScanError  # noqa: E402
+
+try:
+    from py_dem_bones.portable import _prepare_solver, _read_skinning_result
+    import py_dem_bones
+    DEMBONES = f"py-dem-bones {py_dem_bones.__version__} (Dem Bones {py_dem_bones.__dem_bones_version__})"
+    DEMBONES_ERROR = None
+except Exception as exc:  # noqa: BLE001 — report any import failure, still run artdef
+    DEMBONES = None
+    DEMBONES_ERROR = f"{type(exc).__name__}: {exc}"
+
+
+# --------------------------------------------------------------------------- measures
+def kg_error(X: np.ndarray, Xhat: np.ndarray) -> float:
+    """Karni–Gotsman percentage 100·‖X − X̂‖_F / ‖X − X̄‖_F, X̄ the per-vertex mean over fields."""
+    spread = np.linalg.norm(X - X.mean(axis=0, keepdims=True))
+    return float(100.0 * np.linalg.norm(X - Xhat) / spread) if spread > 0 else 0.0
+
+
+def artdef_articulation(res, x0: np.ndarray) -> np.ndarray:
+    """The articulation alone, (P, N, 3): LBS of the FK transforms of the fitted pose parameters."""
+    Rf, tf = model.forward_kinematics(res.parents, res.heads, res.frames, res.params)
+    return np.stack([model.skin(res.weights, Rf[p], tf[p], x0) for p in range(Rf.shape[0])])
+
+
+def face_labels_from_weights(faces: np.ndarray, weights_nl: np.ndarray) -> np.ndarray:
+    """The link of a face = the bone with the largest summed weight over its vertices (the shared data's rule)."""
+    return weights_nl[faces].sum(axis=1).argmax(axis=1)
+
+
+def joint_errors(truth: dict, res, diag: float):
+    """Per true joint between two face-owning bones: error (% diag) of artdef's fitted joint, NaN if missed."""
+    gl = truth["face_labels"]
+    owners = set(np.unique(gl).tolist())
+    # for every true link the fitted link holding most of its triangles
+    table = np.zeros((gl.max() + 1, res.face_labels.max() + 1))
+    np.add.at(table, (gl, res.face_labels), 1)
+    match = table.argmax(axis=1)
+    errs = []
+    for j, q in enumerate(truth["parents"]):
+        if q < 0 or j not in owners or int(q) not in owners:
+            continue
+        a, b = int(match[j]), int(match[q])
+        if a == b:
+            errs.append(np.nan)
+            continue
+        if res.parents[a] == b:
+            c = res.joints[a]
+        elif res.parents[b] == a:
+            c = res.joints[b]
+        else:  # not adjacent in the fitted tree: the matched child link's own joint
+            c = res.joints[a] if np.all(np.isfinite(res.joints[a])) else res.joints[b]
+        errs.append(100.0 * np.linalg.norm(c - truth["joints"][j]) / diag if np.all(np.isfinite(c)) else np.nan)
+    return np.array(errs)
+
+
+# --------------------------------------------------------------------------- methods
+def fit_variants():
+    """The artdef fits to run: the default, plus refined weights when the core has them."""
+    params = inspect.signature(F.fit).parameters
+    if "weights" not in params:
+        return [("artdef", {})]
+    default = params["weights"].default
+    if default == "refined":
+        return [("artdef seam", {"weights": "seam"}), ("artdef refined", {"weights": "refined"})]
+    return [("artdef", {}), ("artdef refined", {"weights": "refined"})]
+
+
+def run_artdef(scan: Scan, L, kw: dict):
+    t0 = time.perf_counter()
+    res = F.fit(scan, L, **kw)
+    secs = time.perf_counter() - t0
+    x0 = scan.vertices
+    X = x0[None] + scan.displacements
+    err = kg_error(X, artdef_articulation(res, x0))
+    return res, secs, err
+
+
+def run_dembones(x0, faces, X, bones: int, nnz: int, iters: int):
+    """Dem Bones' whole decomposition (its own initialisation + iterations): weights (N,B), bones, error, s."""
+    t0 = time.perf_counter()
+    solver = _prepare_solver(x0, X, bones, faces=faces, max_influences=nnz, iterations=iters)
+    solver.compute()
+    out = _read_skinning_result(solver)
+    secs = time.perf_counter() - t0
+    W, M = out.weights, out.transforms                      # (B, N), (P, B, 4, 4)
+    Xhat = np.einsum("bn,pbij,nj->pni", W, M[:, :, :3, :3], x0) + np.einsum("bn,pbi->pni", W, M[:, :, :3, 3])
+    return dict(weights=W.T, bones=int(solver.nB), error=kg_error(X, Xhat), seconds=secs,
+                rmse_check=abs(np.sqrt(np.mean(np.sum((X - Xhat) ** 2, axis=-1))) - solver.rmse()))
+
+
+# --------------------------------------------------------------------------- data
+def load_sets(data_dir: str, fresh_fields: int, bone_count: int, max_tri: int | None, seed: int):
+    files = sorted(glob.glob(os.path.join(data_dir, "*.npz")))
+    if not files:
+        print(f"no .npz under {data_dir}: skipping the shared sets")
+    for path in files:
+        name = os.path.splitext(os.path.basename(path))[0]
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                d = {k: z[k] for k in z.files}
+        except Exception as exc:  # noqa: BLE001
+            print(f"skipping {name}: {exc}")
+            continue
+        if "displacements" not in d:
+            print(f"skipping {name}: no tracked displacements")
+            continue
+        if max_tri and len(d["faces"]) > max_tri:
+            print(f"skipping {name} ({len(d['faces'])} triangles > {max_tri}; --quick)")
+            continue
+        scan = Scan(d["vertices"], d["faces"], displacements=d["displacements"])
+        truth = None
+        if "gt_face_labels" in d:
+            truth = dict(face_labels=d["gt_face_labels"], joints=d["gt_joints"], parents=d["gt_parents"],
+                         weights=d["gt_weights"])
+            L = int(len(np.unique(truth["face_labels"])))
+        else:
+            L = bone_count
+        yield name, scan, truth, L
+        if truth is not None and int(np.sum(truth["parents"] < 0)) == 1:
+            u = samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"], d["gt_parents"],
+                                     n_fields=fresh_fields, max_deg=45.0, seed=seed)
+            yield name + " (fresh poses)", Scan(d["vertices"], d["faces"], displacements=u), truth, L
+
+
+# --------------------------------------------------------------------------- main comparison
+def compare(sets, variants, nnz, iters):
+    rows = []
+    for name, scan, truth, L in sets:
+        x0 = scan.vertices
+        X = x0[None] + scan.displacements
+        diag = float(np.linalg.norm(np.ptp(x0, axis=0)))
+        row = dict(name=name, T=scan.n_faces, N=scan.n_vertices, P=scan.n_fields, L=L, truth=truth is not None)
+        for label, kw in variants:
+            try:
+                # every variant is a whole fit from scratch, so every time column is comparable
+                res, secs, err = run_artdef(scan, L, kw)
+            except (ScanError, ValueError) as exc:
+                print(f"  {name}: {label} failed: {exc}")
+                row[label] = None
+                continue
+            check = abs(err - res.articulation_error_percent)
+            owning = len(np.unique(res.face_labels))
+            r = dict(seconds=secs, error=err, links=res.n_links, owning=owning, check=check,
+                     reported=res.articulation_error_percent)
+            if truth is not None:
+                r["ari"] = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
+                je = joint_errors(truth, res, diag)
+                r["joints"] = je
+            row[label] = r
+        if DEMBONES:
+            try:
+                db = run_dembones(x0, scan.faces, X, L, nnz, iters)
+                lab = face_labels_from_weights(scan.faces, db["weights"])
+                db["owning"] = len(np.unique(lab))
+                if truth is not None:
+                    db["ari"] = quality.adjusted_rand_index(lab, truth["face_labels"])
+                row["dembones"] = db
+            except Exception as exc:  # noqa: BLE001
+                print(f"  {name}: Dem Bones failed: {type(exc).__name__}: {exc}")
+                row["dembones"] = None
+        rows.append(row)
+        print(line(row, variants), flush=True)
+    return rows
+
+
+def _fmt_joints(je):
+    if je is None or len(je) == 0:
+        return "—"
+    ok = je[np.isfinite(je)]
+    miss = int(np.sum(~np.isfinite(je)))
+    if ok.size == 0:
+        return f"all {len(je)} missed"
+    s = f"{np.median(ok):.2f} / {ok.max():.2f} ({int(np.sum(ok <= 2.0))}/{len(je)} ≤ 2%)"
+    return s + (f", {miss} merged" if miss else "")
+
+
+def line(row, variants) -> str:
+    parts = [f"{row['name']}: T={row['T']} P={row['P']} L={row['L']}"]
+    for label, _ in variants:
+        r = row.get(label)
+        if r:
+            s = f"{label} {r['seconds']:.2f}s err {r['error']:.2f}% links {r['owning']}"
+            if "ari" in r:
+                s += f" ARI {r['ari']:.3f} joints {_fmt_joints(r['joints'])}"
+            if r["check"] > 1e-6:
+                s += f" (the result reports {r['reported']:.4f}%)"
+            parts.append(s)
+    db = row.get("dembones")
+    if db:
+        s = f"Dem Bones {db['seconds']:.2f}s err {db['error']:.2f}% bones {db['bones']} (owning faces {db['owning']})"
+        if "ari" in db:
+            s += f" ARI {db['ari']:.3f}"
+        parts.append(s)
+    return "; ".join(parts)
+
+
+def tables(rows, variants) -> str:
+    labels = [v[0] for v in variants]
+    head = ["scan", "triangles", "fields", "links/bones"]
+    head += [f"{lb} time (s)" for lb in labels] + ["Dem Bones time (s)"]
+    head += [f"{lb} error (%)" for lb in labels] + ["Dem Bones error (%)"]
+    head += [f"{lb} / Dem Bones" for lb in labels]
+    out = ["### Time and articulation-only reconstruction error", "",
+           "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
+    for row in rows:
+        db = row.get("dembones")
+        cells = [row["name"].replace("_", "\\_"), f"{row['T']:,}", str(row["P"]), str(row["L"])]
+        cells += [f"{row[lb]['seconds']:.2f}" if row.get(lb) else "failed" for lb in labels]
+        cells += [f"{db['seconds']:.2f}" if db else "n/a"]
+        cells += [f"{row[lb]['error']:.2f}" if row.get(lb) else "failed" for lb in labels]
+        cells += [f"{db['error']:.2f}" if db else "n/a"]
+        cells += [f"{row[lb]['error'] / db['error']:.2f}" if row.get(lb) and db and db["error"] > 0 else "—"
+                  for lb in labels]
+        out.append("| " + " | ".join(cells) + " |")
+    lb0 = labels[0]
+    out += ["", "### Structure (scans with a true skeleton)", "",
+            "| scan | true links | artdef links | Dem Bones bones (owning faces) | ARI artdef | ARI Dem Bones "
+            "| artdef joint error, median / max % of diagonal (≤ 2%) |",
+            "|---|---:|---:|---:|---:|---:|---|"]
+    for row in rows:
+        if not row["truth"]:
+            continue
+        r = row.get(lb0)
+        db = row.get("dembones")
+        out.append("| " + " | ".join([
+            row["name"].replace("_", "\\_"), str(row["L"]),
+            str(r["owning"]) if r else "failed",
+            f"{db['bones']} ({db['owning']})" if db else "n/a",
+            f"{r['ari']:.3f}" if r else "—",
+            f"{db['ari']:.3f}" if db else "n/a",
+            _fmt_joints(r["joints"]) if r else "—"]) + " |")
+    return "\n".join(out)
+
+
+# --------------------------------------------------------------------------- never collapses
+def collapse_test(n_sets, nnz, iters, ari_ok=0.95):
+    rows = []
+    for s in range(n_sets):
+        p = 3 + s % 8
+        scan, truth = samples.rod(n_fields=p, seed=s)
+        res = F.fit(scan, 3)
+        a_links = len(np.unique(res.face_labels))
+        a_ari = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
+        row = dict(seed=s, P=p, artdef_links=a_links, artdef_ari=a_ari)
+        if DEMBONES:
+            x0 = scan.vertices
+            X = x0[None] + scan.displacements
+            db = run_dembones(x0, scan.faces, X, 3, nnz, iters)
+            lab = face_labels_from_weights(scan.faces, db["weights"])
+            row.update(db_bones=db["bones"], db_owning=len(np.unique(lab)),
+                       db_ari=quality.adjusted_rand_index(lab, truth["face_labels"]))
+        rows.append(row)
+        print(f"  rod seed {s:2d}, {p:2d} fields: artdef {a_links} links ARI {a_ari:.3f}"
+              + (f"; Dem Bones {row['db_bones']} bones, {row['db_owning']} owning faces, ARI {row['db_ari']:.3f}"
+                 if DEMBONES else ""), flush=True)
+    ok = sum(r["artdef_links"] == 3 and r["artdef_ari"] >= ari_ok for r in rows)
+    md = ["### Never collapses: three-link rod, 20 random pose sets (3–10 fields)", "",
+          f"artdef finds 3 distinct links with ARI ≥ {ari_ok} on **{ok}/{len(rows)}** sets "
+          f"(median ARI {np.median([r['artdef_ari'] for r in rows]):.3f}, min {min(r['artdef_ari'] for r in rows):.3f})."]
+    if DEMBONES:
+        fewer = sum(r["db_bones"] < 3 for r in rows)
+        fewer_own = sum(r["db_owning"] < 3 for r in rows)
+        db_ok = sum(r["db_owning"] == 3 and r["db_ari"] >= ari_ok for r in rows)
+        md.append(f"Dem Bones (its own initialisation, 3 bones requested) ends with fewer than 3 bones on "
+                  f"**{fewer}/{len(rows)}** sets, with fewer than 3 bones owning a face on **{fewer_own}/{len(rows)}**, "
+                  f"and matches the 3 true links (ARI ≥ {ari_ok}) on {db_ok}/{len(rows)} "
+                  f"(median ARI {np.median([r['db_ari'] for r in rows]):.3f}).")
+    md += ["", "| seed | fields | artdef links | artdef ARI | Dem Bones bones | Dem Bones bones owning faces | Dem Bones ARI |",
+           "|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        md.append(f"| {r['seed']} | {r['P']} | {r['artdef_links']} | {r['artdef_ari']:.3f} | "
+                  + (f"{r['db_bones']} | {r['db_owning']} | {r['db_ari']:.3f} |" if DEMBONES else "n/a | n/a | n/a |"))
+    return "\n".join(md)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description="artdef vs py-dem-bones on the shared tracked scans.")
+    ap.add_argument("--data", default=os.path.join(ROOT, "..", "shared", "data"))
+    ap.add_argument("--quick", action="store_true", help="skip scans above 10k triangles")
+    ap.add_argument("--bone-count", type=int, default=10, help="links/bones for scans without truth (dembones_bone)")
+    ap.add_argument("--fresh-fields", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=1, help="seed of the fresh random poses")
+    ap.add_argument("--nnz", type=int, default=4, help="Dem Bones influences per vertex (artdef's refined uses 4)")
+    ap.add_argument("--iters", type=int, default=30, help="Dem Bones global iterations (its default 30)")
+    ap.add_argument("--rod-sets", type=int, default=20)
+    ap.add_argument("--only", help="comma-separated substrings: run only the scans whose name contains one")
+    ap.add_argument("--skip-rod", action="store_true")
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "compare_dembones.md"))
+    a = ap.parse_args(argv)
+    t_all = time.perf_counter()
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    env = (f"{platform.machine()}, {cores} cores, Python {platform.python_version()}, numpy {np.__version__}; "
+           f"{DEMBONES or 'py-dem-bones NOT available: ' + DEMBONES_ERROR}. Shared machine: timings are noisy.")
+    print(env)
+    variants = fit_variants()
+    print("artdef fits:", ", ".join(f"{lb} {kw or ''}" for lb, kw in variants))
+    sets = load_sets(a.data, a.fresh_fields, a.bone_count, 10000 if a.quick else None, a.seed)
+    if a.only:
+        keys = a.only.split(",")
+        sets = (s for s in sets if any(k in s[0] for k in keys))
+    rows = compare(sets, variants, a.nnz, a.iters)
+    md = ["# artdef vs Dem Bones", "", env, "",
+          f"Same link/bone count for both (true links; {a.bone_count} for dembones\\_bone, as in Dem Bones' example). "
+          f"Dem Bones: `solve_skinning`, {a.nnz} influences per vertex, {a.iters} iterations. Error: articulation only, "
+          "100·‖X−X̂‖/‖X−X̄‖ (Karni–Gotsman). Fresh poses: 20 random LBS poses of the true rig (≤ 45° a bone).", "",
+          tables(rows, variants), ""]
+    print("\n".join(md[6:]))
+    if not a.skip_rod:
+        print("never collapses (three-link rod):", flush=True)
+        rod_md = collapse_test(a.rod_sets, a.nnz, a.iters)
+        md += [rod_md, ""]
+        print(rod_md)
+    md.append(f"Script wall time: {time.perf_counter() - t_all:.0f} s.")
+    print(md[-1])
+    if a.out:
+        os.makedirs(os.path.dirname(a.out), exist_ok=True)
+        with open(a.out, "w") as fh:
+            fh.write("\n".join(md) + "\n")
+        print("wrote", a.out)
+
+
+if __name__ == "__main__":
+    main()
