@@ -172,17 +172,24 @@ def load_sets(data_dir: str, fresh_fields: int, bone_count: int, max_tri: int | 
 
 
 # --------------------------------------------------------------------------- main comparison
-def compare(sets, variants, nnz, iters):
+def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
+    """Both methods on every set; times are medians of ``repeats`` runs for sets of at most ``cheap``
+    triangles (one run above), every run a whole fit from scratch."""
     rows = []
     for name, scan, truth, L in sets:
         x0 = scan.vertices
         X = x0[None] + scan.displacements
         diag = float(np.linalg.norm(np.ptp(x0, axis=0)))
-        row = dict(name=name, T=scan.n_faces, N=scan.n_vertices, P=scan.n_fields, L=L, truth=truth is not None)
+        reps = repeats if scan.n_faces <= cheap else 1
+        row = dict(name=name, T=scan.n_faces, N=scan.n_vertices, P=scan.n_fields, L=L, truth=truth is not None,
+                   runs=reps)
         for label, kw in variants:
             try:
-                # every variant is a whole fit from scratch, so every time column is comparable
-                res, secs, err = run_artdef(scan, L, kw)
+                times = []
+                for _ in range(reps):
+                    res, secs, err = run_artdef(scan, L, kw)
+                    times.append(secs)
+                secs = float(np.median(times))
             except (ScanError, ValueError) as exc:
                 print(f"  {name}: {label} failed: {exc}")
                 row[label] = None
@@ -198,7 +205,9 @@ def compare(sets, variants, nnz, iters):
             row[label] = r
         if DEMBONES:
             try:
-                db = run_dembones(x0, scan.faces, X, L, nnz, iters)
+                runs = [run_dembones(x0, scan.faces, X, L, nnz, iters) for _ in range(reps)]
+                db = runs[-1]
+                db["seconds"] = float(np.median([d["seconds"] for d in runs]))
                 lab = face_labels_from_weights(scan.faces, db["weights"])
                 db["owning"] = len(np.unique(lab))
                 if truth is not None:
@@ -332,6 +341,7 @@ def main(argv=None):
     ap.add_argument("--nnz", type=int, default=4, help="Dem Bones influences per vertex (artdef's refined uses 4)")
     ap.add_argument("--iters", type=int, default=30, help="Dem Bones global iterations (its default 30)")
     ap.add_argument("--rod-sets", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=3, help="timing repeats (median) for scans of ≤ 5k triangles")
     ap.add_argument("--only", help="comma-separated substrings: run only the scans whose name contains one")
     ap.add_argument("--skip-rod", action="store_true")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "compare_dembones.md"))
@@ -347,11 +357,12 @@ def main(argv=None):
     if a.only:
         keys = a.only.split(",")
         sets = (s for s in sets if any(k in s[0] for k in keys))
-    rows = compare(sets, variants, a.nnz, a.iters)
+    rows = compare(sets, variants, a.nnz, a.iters, a.repeats)
     md = ["# artdef vs Dem Bones", "", env, "",
           f"Same link/bone count for both (true links; {a.bone_count} for dembones\\_bone, as in Dem Bones' example). "
           f"Dem Bones: `solve_skinning`, {a.nnz} influences per vertex, {a.iters} iterations. Error: articulation only, "
-          "100·‖X−X̂‖/‖X−X̄‖ (Karni–Gotsman). Fresh poses: 20 random LBS poses of the true rig (≤ 45° a bone).", "",
+          "100·‖X−X̂‖/‖X−X̄‖ (Karni–Gotsman). Fresh poses: 20 random LBS poses of the true rig (≤ 45° a bone). "
+          f"Times: median of {a.repeats} whole runs for scans of ≤ 5k triangles, one run above.", "",
           tables(rows, variants), ""]
     print("\n".join(md[6:]))
     if not a.skip_rod:
