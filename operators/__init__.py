@@ -5,12 +5,15 @@
 * ``rig``   — builds/removes the armature, groups, shape keys, drivers, actions;
 * ``props`` — ``Object.artdef`` settings, the fit's record and summary;
 * ``ops``   — the operators ``artdef.import_scan``, ``artdef.fields_from_shape_keys``,
-  ``artdef.fit``, ``artdef.preview_links``, ``artdef.clear_rig``.
+  ``artdef.fit``, ``artdef.preview_links``, ``artdef.clear_rig``;
+* ``sources`` — ``artdef.fields_from_animation``, ``artdef.import_mesh_sequence``;
+* ``sequence`` — numbered OBJ/PLY files (pure numpy, no bpy);
+* ``fitquality`` — residual and per-link figures of a fit (pure numpy).
 """
 
-from . import props, ops
+from . import props, ops, sources
 
-_modules = (props, ops)
+_modules = (props, ops, sources)
 
 
 def register():

@@ -161,6 +161,38 @@ def new_mesh_from_scan(name, scan):
     return mesh
 
 
+def new_mesh_from_polygons(name, vertices, sizes, indices):
+    """A new mesh datablock with polygons given as ``sizes`` and flat ``indices``.
+
+    Invalid polygons (repeated vertices, ...) are removed by ``Mesh.validate``;
+    the vertices are kept as given.
+    """
+    verts = np.ascontiguousarray(vertices, dtype=np.float32)
+    sizes = np.asarray(sizes, dtype=np.int64)
+    indices = np.ascontiguousarray(indices, dtype=np.int32)
+    if len(sizes) == 0 or sizes.min() < 3 or sizes.sum() != len(indices):
+        raise _scan.ScanError("the polygons are malformed")
+    if indices.min() < 0 or indices.max() >= len(verts):
+        raise _scan.ScanError("a face refers to a vertex that does not exist")
+    mesh = bpy.data.meshes.new(name)
+    try:
+        mesh.vertices.add(len(verts))
+        mesh.vertices.foreach_set("co", verts.ravel())
+        mesh.loops.add(len(indices))
+        mesh.loops.foreach_set("vertex_index", indices)
+        mesh.polygons.add(len(sizes))
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32)
+        mesh.polygons.foreach_set("loop_start", starts)
+        mesh.update(calc_edges=True)
+        mesh.validate(clean_customdata=False)
+        if len(mesh.vertices) != len(verts) or len(mesh.polygons) == 0:
+            raise _scan.ScanError("the faces are not valid polygons")
+    except Exception:
+        bpy.data.meshes.remove(mesh)
+        raise
+    return mesh
+
+
 def import_scan_file(context, filepath):
     """Load a scan file and add it as a new selected, active mesh object.
 

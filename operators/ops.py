@@ -6,12 +6,13 @@ import time
 import traceback
 
 import bpy
+import numpy as np
 from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
-from . import io, rig
+from . import fitquality, io, rig
 from .props import MODE_ITEMS, MOTION_ITEMS
 
 #: Extra cancel checks consulted by every fit's progress callback:
@@ -183,9 +184,12 @@ class ARTDEF_OT_fields_from_shape_keys(bpy.types.Operator):
 class _FitJob:
     """One fit: the core runs here (possibly in a worker thread); no bpy access."""
 
-    def __init__(self, scan, links, mode, motion, p_max, segmenter=None):
+    def __init__(self, scan, links, mode, motion, p_max, segmenter=None, load_index=0):
         self.scan, self.links, self.mode, self.motion, self.p_max = scan, links, mode, motion, p_max
+        self.load_index = load_index
         self.segmenter = segmenter  # cached one (same scan), or None: made in run()
+        self.model = None            # the result whose rig is built (pseudo: one load point's)
+        self.vertex_residual = None  # (N,) articulation residual of ``model``
         self.stage, self.fraction = "start", 0.0
         self.cancel = threading.Event()
         self.result = None
@@ -211,12 +215,25 @@ class _FitJob:
                 self.segmenter = _fit.Segmenter(self.scan, callback)
             self.result = _fit.fit(self.scan, self.links, mode=self.mode, motion=self.motion,
                                    p_max=self.p_max, progress=callback, segmenter=self.segmenter)
+            self._quality()
         except BaseException as err:  # reported on the main thread
             self.error = err
         finally:
             if self.segmenter is not None:
                 self.segmenter.progress = None  # don't keep this job's callback in the cache
         self.seconds = time.perf_counter() - t0
+
+    def _quality(self):
+        """The model to build and its per-vertex articulation residual."""
+        model, fields = self.result, None
+        if self.mode == "pseudo":
+            pseudo = self.result.pseudo or []
+            if self.load_index >= len(pseudo):
+                return  # reported by the operator
+            model = pseudo[self.load_index]
+            fields = self.segmenter.groups[self.load_index]
+        self.model = model
+        self.vertex_residual = fitquality.vertex_residual(model, self.scan, fields)
 
     def start_thread(self):
         self.thread = threading.Thread(target=self.run, name="artdef-fit", daemon=True)
@@ -242,6 +259,10 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                                      "(> 1); 0 = off (linear)")
     load_index: IntProperty(name="Load Index", default=0, min=0,
                             description="Pseudo mode: the load point whose model becomes the rig")
+    frames_per_field: IntProperty(name="Frames per Field", default=10, min=1, soft_max=100,
+                                  description="Tracked scans: the replay action keys field p at "
+                                              "frame (p+1) x this and the rest pose at frame 0; "
+                                              "the scene's frame range is set to cover it")
 
     _job = None
     _timer = None
@@ -253,7 +274,7 @@ class ARTDEF_OT_fit(bpy.types.Operator):
     # -- settings: explicit operator arguments win, else the object's settings
     def _settings(self, obj):
         st = obj.artdef
-        for name in ("links", "mode", "motion", "p_max", "load_index"):
+        for name in ("links", "mode", "motion", "p_max", "load_index", "frames_per_field"):
             if not self.properties.is_property_set(name):
                 setattr(self, name, getattr(st, name))
 
@@ -280,7 +301,7 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                 return None
         job = _FitJob(scan, self.links, self.mode.lower(), self.motion.lower(),
                       None if self.p_max == 0.0 else float(self.p_max),
-                      _cached_segmenter(obj.name, stored.fingerprint))
+                      _cached_segmenter(obj.name, stored.fingerprint), self.load_index)
         job.obj_name = obj.name
         job.tri_polygons = stored.tri_polygons
         job.fingerprint = stored.fingerprint
@@ -303,29 +324,31 @@ class ARTDEF_OT_fit(bpy.types.Operator):
         if obj is None or obj.type != 'MESH' or len(obj.data.vertices) != len(job.scan.vertices):
             self.report({'ERROR'}, "The mesh changed while fitting; nothing was created")
             return {'CANCELLED'}
-        result = job.result
         _cache_segmenter(job.obj_name, job.fingerprint, job.segmenter)
-        model = result
+        model = job.model
         load_names = None
         if self.mode == 'PSEUDO':
-            pseudo = getattr(result, "pseudo", None)
-            if not pseudo or self.load_index >= len(pseudo):
+            if model is None:
                 self.report({'ERROR'}, "The fit returned no pseudo-articulation for that load point")
                 return {'CANCELLED'}
-            model = pseudo[self.load_index]
             load_names = [self.load_index]
         try:
-            rig.build_rig(context, obj, model, job.tri_polygons, job.scan.kind, load_names)
+            rig.build_rig(context, obj, model, job.tri_polygons, job.scan.kind, load_names,
+                          self.frames_per_field)
+            scale = float(job.vertex_residual.max()) if len(job.vertex_residual) else 0.0
+            rig.write_residual(obj.data, job.vertex_residual, scale)
         except Exception as err:
             traceback.print_exc()
-            rig.clear_rig(obj)
+            rig.clear_rig(obj, context.scene)
             self.report({'ERROR'}, f"Building the rig failed: {err}")
             return {'CANCELLED'}
         LAST_RESULTS[obj.name] = model
         self._store_summary(obj, model, job)
         self.report({'INFO'}, f"'{obj.name}': {model.n_links} links, rms articulation "
-                              f"{model.rms_articulation:.4g}, rms total {model.rms_total:.4g} "
-                              f"({job.seconds:.2f} s)")
+                              f"{model.rms_articulation:.4g} "
+                              f"({model.articulation_error_percent:.2f}%), rms total "
+                              f"{model.rms_total:.4g} ({job.seconds:.2f} s)"
+                              + (f"; {obj.artdef.fit_replay}" if obj.artdef.fit_replay else ""))
         return {'FINISHED'}
 
     def _store_summary(self, obj, model, job):
@@ -342,13 +365,33 @@ class ARTDEF_OT_fit(bpy.types.Operator):
         st.fit_seconds = job.seconds
         timings = getattr(model, "timings", None) or getattr(job.result, "timings", None) or {}
         st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
+        st.fit_articulation_percent = float(model.articulation_error_percent)
+        res = job.vertex_residual
+        st.fit_residual_max = float(res.max()) if len(res) else 0.0
+        st.fit_residual_mean = float(res.mean()) if len(res) else 0.0
+        st.fit_diagonal = float(np.linalg.norm(np.ptp(job.scan.vertices, axis=0)))
+        st.fit_link_stats.clear()
+        for item in fitquality.link_stats(model):
+            rec = st.fit_link_stats.add()
+            rec.name = rig.GROUP_FMT.format(item["link"])
+            for key, value in item.items():
+                setattr(rec, key, value)
+        if st.set_frame_range:
+            start, end = st.replay_frame_range
+            st.fit_replay = (f"replay: field p at frame (p+1)x{self.frames_per_field}, "
+                             f"scene frames set to {start}-{end}")
+        else:
+            st.fit_replay = ""
         try:
             st.fit_summary = str(model.summary())
         except Exception:  # the summary is informative only
             st.fit_summary = ""
+        if st.fit_replay:
+            st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
         # Remember the settings that made this rig.
         st.links, st.mode, st.motion = self.links, self.mode, self.motion
         st.p_max, st.load_index = self.p_max, self.load_index
+        st.frames_per_field = self.frames_per_field
 
     # -- synchronous path (scripts, background mode) -------------------------
     def execute(self, context):
@@ -494,7 +537,7 @@ class ARTDEF_OT_clear_rig(bpy.types.Operator):
 
     def execute(self, context):
         obj = context.active_object
-        rig.clear_rig(obj)
+        rig.clear_rig(obj, context.scene)
         LAST_RESULTS.pop(obj.name, None)
         self.report({'INFO'}, f"'{obj.name}': ArtDef rig removed")
         return {'FINISHED'}

@@ -7,7 +7,8 @@ Registered as ``Object.artdef``.  The record of what a fit created lets
 
 import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
-                       FloatVectorProperty, IntProperty, PointerProperty, StringProperty)
+                       FloatVectorProperty, IntProperty, IntVectorProperty, PointerProperty,
+                       StringProperty)
 from bpy.types import PropertyGroup
 
 MODE_ITEMS = (
@@ -23,6 +24,24 @@ MOTION_ITEMS = (
 
 class ARTDEF_PG_name(PropertyGroup):
     """A name recorded in a list (``name`` is built into PropertyGroup)."""
+
+
+class ARTDEF_PG_link_stats(PropertyGroup):
+    """Fit quality of one link (``name`` is the bone/group name)."""
+    link: IntProperty(name="Link")
+    parent: IntProperty(name="Parent", default=-1,
+                        description="Parent link (-1: root)")
+    grounded: BoolProperty(name="Grounded",
+                           description="The link is jointed to the fixed world")
+    has_joint: BoolProperty(name="Has Joint",
+                            description="The link has a joint (to its parent or the world)")
+    joint_error: FloatProperty(name="Joint Error", precision=6,
+                               description="RMS distance between where the two links of this "
+                                           "joint move its centre, over the fields")
+    rigid_residual: FloatProperty(name="Rigid Residual", precision=6,
+                                  description="RMS over fields of the link's own rigid-motion "
+                                              "residual on its vertices")
+    triangles: IntProperty(name="Triangles")
 
 
 class ARTDEF_PG_object(PropertyGroup):
@@ -41,6 +60,10 @@ class ARTDEF_PG_object(PropertyGroup):
     load_index: IntProperty(
         name="Load Index", default=0, min=0,
         description="Pseudo mode: which load point's model becomes the rig")
+    frames_per_field: IntProperty(
+        name="Frames per Field", default=10, min=1, soft_max=100,
+        description="Tracked scans: the replay action keys field p at frame "
+                    "(p+1) x this, the rest pose at frame 0")
 
     # ---- what the last fit created (used by Clear Rig / re-fit) ----
     rig: PointerProperty(type=bpy.types.Object, name="Rig",
@@ -56,6 +79,10 @@ class ARTDEF_PG_object(PropertyGroup):
     old_parent_type: StringProperty(default='OBJECT')
     old_parent_bone: StringProperty()
     old_parent_inverse: FloatVectorProperty(size=16)
+    set_frame_range: BoolProperty(default=False,
+                                  description="The fit set the scene's frame range to its replay")
+    replay_frame_range: IntVectorProperty(size=2, description="Frame range the fit set")
+    old_frame_range: IntVectorProperty(size=2, description="Scene frame range before the fit")
 
     # ---- last fit summary (panel) ----
     has_fit: BoolProperty(default=False)
@@ -73,9 +100,24 @@ class ARTDEF_PG_object(PropertyGroup):
                                description="Wall time of the fit")
     fit_timings: StringProperty(description="Seconds per fitting stage")
     fit_summary: StringProperty(description="The core's summary of the fit")
+    fit_articulation_percent: FloatProperty(
+        name="Articulation error", precision=3, subtype='PERCENTAGE',
+        description="Articulation-only reconstruction error, 100 |X - X_art| / |X - mean X| "
+                    "over all fields (Karni-Gotsman style)")
+    fit_residual_max: FloatProperty(
+        name="Residual colour scale", precision=6,
+        description="Per-vertex articulation residual shown red in 'artdef_residual_color' "
+                    "(the largest one; blue = 0)")
+    fit_residual_mean: FloatProperty(name="Mean vertex residual", precision=6)
+    fit_diagonal: FloatProperty(name="Bounding-box diagonal", precision=6,
+                                description="Scale of the scan, to read the errors against")
+    fit_replay: StringProperty(description="Frames of the replay action (tracked scans)")
+    fit_link_stats: CollectionProperty(type=ARTDEF_PG_link_stats)
+    show_link_stats: BoolProperty(name="Per Link", default=False,
+                                  description="Show the fit quality of every link")
 
 
-classes = (ARTDEF_PG_name, ARTDEF_PG_object)
+classes = (ARTDEF_PG_name, ARTDEF_PG_link_stats, ARTDEF_PG_object)
 
 
 def register():

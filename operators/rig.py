@@ -15,9 +15,12 @@ re-fit remove exactly this:
   mesh had none);
 * Green's scans: load empties ``artdef_load_K`` (children of the armature)
   whose ``location`` is the load vector, with drivers on the bones and the
-  shape keys; tracked scans: actions replaying the input fields at frames
-  1..P (frame 0 = rest);
-* the face colour attribute ``artdef_links``.
+  shape keys; tracked scans: actions replaying the input fields, field p at
+  frame (p+1)·frames_per_field (frame 0 = rest), and the scene's frame range
+  set to cover it (restored by Clear Rig if still unchanged);
+* the face colour attribute ``artdef_links`` (active), the per-vertex
+  articulation residual ``artdef_residual`` (FLOAT, POINT) and its colours
+  ``artdef_residual_color`` (FLOAT_COLOR, POINT, blue = 0 → red = largest).
 """
 
 import colorsys
@@ -34,6 +37,8 @@ KEY_PREFIX = "artdef_field_"
 LOAD_FMT = "artdef_load_{}"
 MODIFIER_NAME = "ArtDef Armature"
 COLOR_ATTR = "artdef_links"
+RESIDUAL_ATTR = "artdef_residual"
+RESIDUAL_COLOR_ATTR = "artdef_residual_color"
 SLIDER_RANGE = 10.0          # Blender's hard limit for shape key sliders
 #: Longest driver expression written (Blender keeps 255 characters).  Longer
 #: sums are split into partial sums held in custom properties of the armature.
@@ -79,17 +84,50 @@ def write_link_colours(mesh, tri_labels, tri_polygons):
         mesh.color_attributes.remove(old)
     attr = mesh.color_attributes.new(COLOR_ATTR, 'BYTE_COLOR', 'CORNER')
     attr.data.foreach_set("color_srgb", np.ascontiguousarray(colours, dtype=np.float32).ravel())
-    mesh.color_attributes.active_color = attr
-    for i, a in enumerate(mesh.color_attributes):
-        if a.name == COLOR_ATTR:
-            mesh.color_attributes.render_color_index = i
-    return attr
+    _set_active_colour(mesh, COLOR_ATTR)
+    return mesh.color_attributes.get(COLOR_ATTR)
 
 
 def remove_link_colours(mesh):
     attr = mesh.color_attributes.get(COLOR_ATTR)
     if attr is not None:
         mesh.color_attributes.remove(attr)
+
+
+def _set_active_colour(mesh, name):
+    attrs = mesh.color_attributes
+    attr = attrs.get(name)
+    if attr is None:
+        return
+    attrs.active_color = attr
+    for i, a in enumerate(attrs):
+        if a.name == name:
+            attrs.render_color_index = i
+
+
+def write_residual(mesh, values, scale):
+    """Per-vertex residual magnitude as FLOAT ``artdef_residual`` and as colours
+    ``artdef_residual_color`` (blue at 0 → red at ``scale``).  The active colour
+    attribute is left as it was (the link colours after a fit)."""
+    from .fitquality import ramp
+    values = np.ascontiguousarray(values, dtype=np.float32)
+    active = mesh.color_attributes.active_color
+    active_name = active.name if active is not None else None
+    remove_residual(mesh)
+    attr = mesh.attributes.new(RESIDUAL_ATTR, 'FLOAT', 'POINT')
+    attr.data.foreach_set("value", values)
+    colours = ramp(values / scale if scale > 0 else np.zeros(len(values)))
+    col = mesh.color_attributes.new(RESIDUAL_COLOR_ATTR, 'FLOAT_COLOR', 'POINT')
+    col.data.foreach_set("color_srgb", np.ascontiguousarray(colours, dtype=np.float32).ravel())
+    if active_name is not None:
+        _set_active_colour(mesh, active_name)
+
+
+def remove_residual(mesh):
+    for coll, name in ((mesh.color_attributes, RESIDUAL_COLOR_ATTR), (mesh.attributes, RESIDUAL_ATTR)):
+        attr = coll.get(name)
+        if attr is not None:
+            coll.remove(attr)
 
 
 # --------------------------------------------------------------------------
@@ -241,9 +279,23 @@ def _remove_object(ob):
         bpy.data.actions.remove(action)
 
 
-def clear_rig(obj):
-    """Remove everything the last fit created on/around mesh object ``obj``."""
+def _restore_frame_range(st, scene):
+    """Put back the scene frame range the fit replaced, unless the user changed it since."""
+    if st.set_frame_range and scene is not None:
+        if (scene.frame_start, scene.frame_end) == tuple(st.replay_frame_range):
+            start, end = st.old_frame_range
+            scene.frame_start = start
+            scene.frame_end = max(end, start)
+    st.set_frame_range = False
+
+
+def clear_rig(obj, scene=None):
+    """Remove everything the last fit created on/around mesh object ``obj``.
+
+    ``scene`` (default: the context's) gets its frame range back if the fit set it.
+    """
     st = obj.artdef
+    _restore_frame_range(st, scene if scene is not None else bpy.context.scene)
     mesh = obj.data
     world = obj.matrix_world.copy()
     arm = st.rig
@@ -300,6 +352,7 @@ def clear_rig(obj):
     st.shape_keys.clear()
     st.made_basis = False
     remove_link_colours(mesh)
+    remove_residual(mesh)
     st.has_fit = False
 
 
@@ -437,15 +490,17 @@ def _make_load_empties(obj, arm, result, load_names, size):
     return empties
 
 
-def build_rig(context, obj, result, tri_polygons, kind, load_names=None):
+def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_per_field=10):
     """Create the rig of ``result`` for mesh object ``obj`` (replacing its old rig).
 
     ``tri_polygons`` maps the scan's triangles to the mesh's polygons; ``kind``
     is the scan kind ('greens' drives from load empties, 'tracked' replays the
     fields in actions); ``load_names`` numbers the load empties (defaults to
-    0..M-1; pseudo mode passes the original load index).
+    0..M-1; pseudo mode passes the original load index); tracked scans replay
+    field p at frame (p+1)·``frames_per_field`` and the scene's frame range is
+    set to cover the replay.
     """
-    clear_rig(obj)
+    clear_rig(obj, context.scene)
     st = obj.artdef
     mesh = obj.data
     L = int(result.n_links)
@@ -508,7 +563,17 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None):
     if kind == "greens" and result.kappa is not None:
         _build_load_controls(obj, arm, result, bone_names, key_names, load_names)
     else:
-        _build_replay(obj, arm, result, bone_names, key_names)
+        end = _build_replay(obj, arm, result, bone_names, key_names, frames_per_field)
+        scene = context.scene
+        st.old_frame_range = (scene.frame_start, scene.frame_end)
+        if end > scene.frame_start:
+            scene.frame_end = end  # set the end first: frame_start may not pass frame_end
+            scene.frame_start = 0
+        else:
+            scene.frame_start = 0
+            scene.frame_end = end
+        st.replay_frame_range = (scene.frame_start, scene.frame_end)
+        st.set_frame_range = True
     return arm
 
 
@@ -542,15 +607,21 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
         drv.expression = shape_value_expression(k, d, probe, p_max)
 
 
-def _build_replay(obj, arm, result, bone_names, key_names):
+def _build_replay(obj, arm, result, bone_names, key_names, frames_per_field=10):
+    """Actions replaying the fields: rest at frame 0, field p at (p+1)·frames_per_field.
+
+    Returns the last frame of the replay.
+    """
     angles = np.asarray(result.angles, dtype=np.float64)
     locations = np.asarray(result.locations, dtype=np.float64)
     p = angles.shape[0]
-    frames = np.arange(p + 1, dtype=np.float64)
+    step = max(int(frames_per_field), 1)
+    frames = np.arange(p + 1, dtype=np.float64) * step
+    end = int(p * step)
     action, new_fcurve = _new_action(arm, f"{arm.name}_replay")
     action["artdef_made"] = True
     action.use_frame_range = True
-    action.frame_start, action.frame_end = 0, p
+    action.frame_start, action.frame_end = 0, end
     for l, bname in enumerate(bone_names):
         base = f'pose.bones["{bname}"]'
         for j in range(3):
@@ -567,10 +638,11 @@ def _build_replay(obj, arm, result, bone_names, key_names):
     kaction, new_kcurve = _new_action(keys, f"{obj.name}_artdef_replay")
     kaction["artdef_made"] = True
     kaction.use_frame_range = True
-    kaction.frame_start, kaction.frame_end = 0, p
+    kaction.frame_start, kaction.frame_end = 0, end
     st.key_action = kaction
     for c, kname in enumerate(key_names):
         values = np.zeros(p + 1)
         if c < p:
             values[c + 1] = 1.0
         _key_curve(new_kcurve(f'key_blocks["{kname}"].value', 0, "ArtDef"), frames, values)
+    return end

@@ -15,7 +15,9 @@ class ARTDEF_PT_main(bpy.types.Panel):
 
     def draw(self, context):
         layout = self.layout
-        layout.operator("artdef.import_scan", icon='IMPORT')
+        col = layout.column(align=True)
+        col.operator("artdef.import_scan", icon='IMPORT')
+        col.operator("artdef.import_mesh_sequence", icon='FILE_FOLDER')
         obj = context.active_object
         if obj is None or obj.type != 'MESH':
             layout.label(text="Select a mesh to fit", icon='INFO')
@@ -41,6 +43,7 @@ class ARTDEF_PT_main(bpy.types.Panel):
         keys = mesh.shape_keys
         if keys is not None and len(keys.key_blocks) > 1:
             box.operator("artdef.fields_from_shape_keys", icon='SHAPEKEY_DATA')
+        box.operator("artdef.fields_from_animation", icon='ANIM')
 
         st = obj.artdef
         box = layout.box()
@@ -54,11 +57,15 @@ class ARTDEF_PT_main(bpy.types.Panel):
             col.prop(st, "load_index")
         col.prop(st, "motion")
         col.prop(st, "p_max")
+        tracked = io.has_scan(mesh) and io.scan_info(mesh)["kind"] == "tracked"
+        if tracked:
+            col.prop(st, "frames_per_field")
         row = box.row(align=True)
         row.scale_y = 1.3
         op = row.operator("artdef.fit", icon='PLAY')
         op.links, op.mode, op.motion = st.links, st.mode, st.motion
         op.p_max, op.load_index = st.p_max, st.load_index
+        op.frames_per_field = st.frames_per_field
         row = box.row(align=True)
         row.operator("artdef.preview_links", icon='COLOR').links = st.links
         row.operator("artdef.clear_rig", icon='TRASH')
@@ -73,14 +80,23 @@ class ARTDEF_PT_main(bpy.types.Panel):
             col.label(text=f"Links: {st.fit_links}   {mode}, {st.fit_motion.lower()}")
             if st.fit_p_max > 0:
                 col.label(text=f"Hardening p_max: {st.fit_p_max:g}")
+            col.label(text=f"Articulation error: {st.fit_articulation_percent:.2f}%")
             col.label(text=f"RMS articulation: {st.fit_rms_articulation:.4g}")
             col.label(text=f"RMS total: {st.fit_rms_total:.4g}")
+            if st.fit_diagonal > 0:
+                col.label(text=f"Vertex residual: mean {_rel(st.fit_residual_mean, st)}, "
+                               f"max {_rel(st.fit_residual_max, st)}")
             col.label(text=f"Time: {st.fit_seconds:.2f} s")
             if st.fit_timings:
                 for part in st.fit_timings.split(", "):
                     col.label(text=f"  {part}")
+            if st.fit_replay:
+                col.label(text=st.fit_replay.capitalize(), icon='ACTION')
             if st.rig is not None:
                 col.label(text=f"Rig: {st.rig.name}", icon='OUTLINER_OB_ARMATURE')
+            _draw_colours(box, mesh)
+            if len(st.fit_link_stats):
+                _draw_link_stats(box, st)
             if st.fit_summary:
                 sub = box.column(align=True)
                 sub.scale_y = 0.8
@@ -88,6 +104,41 @@ class ARTDEF_PT_main(bpy.types.Panel):
                     sub.label(text=line)
         elif rig.has_rig(obj):
             layout.label(text="Rig present (no summary)", icon='INFO')
+
+
+def _rel(value, st):
+    """An error in scene units and as a percentage of the scan's bounding-box diagonal."""
+    if st.fit_diagonal > 0:
+        return f"{value:.3g} ({100.0 * value / st.fit_diagonal:.2f}%)"
+    return f"{value:.3g}"
+
+
+def _draw_colours(layout, mesh):
+    """Which colour attribute the viewport shows: links or the residual."""
+    attrs = mesh.color_attributes
+    if rig.RESIDUAL_COLOR_ATTR not in attrs:
+        return
+    row = layout.row(align=True)
+    if "active_color_name" in attrs.bl_rna.properties:
+        row.prop(attrs, "active_color_name", text="Colours")
+    layout.label(text="Residual colours: blue 0, red = max", icon='INFO')
+
+
+def _draw_link_stats(layout, st):
+    """Per link: parent, joint error, rigid residual, triangles."""
+    box = layout.box()
+    box.prop(st, "show_link_stats", icon='TRIA_DOWN' if st.show_link_stats else 'TRIA_RIGHT',
+             emboss=False)
+    if not st.show_link_stats:
+        return
+    col = box.column(align=True)
+    col.scale_y = 0.85
+    col.label(text="link  parent  joint err  rigid res  tris")
+    for item in st.fit_link_stats:
+        parent = ("world" if item.grounded else "-") if item.parent < 0 else f"{item.parent:02d}"
+        joint = _rel(item.joint_error, st) if item.has_joint else "-"
+        col.label(text=f"{item.link:02d}  {parent}  {joint}  "
+                       f"{_rel(item.rigid_residual, st)}  {item.triangles}")
 
 
 classes = (ARTDEF_PT_main,)

@@ -15,6 +15,7 @@ bpy = pytest.importorskip("bpy")
 
 REL_TOL = 1e-4      # evaluated rig vs the core's model, relative to the displacement
 HEAD_TOL = 1e-5     # bone heads vs the core's heads
+FPF = 10            # default frames per field of the tracked replay
 
 
 # --------------------------------------------------------------------------
@@ -111,15 +112,17 @@ def scene_snapshot():
 # --------------------------------------------------------------------------
 
 def test_registered_ui(installed_addon):
-    for name in ("import_scan", "fields_from_shape_keys", "fit", "preview_links", "clear_rig"):
+    for name in ("import_scan", "fields_from_shape_keys", "fit", "preview_links", "clear_rig",
+                 "fields_from_animation", "import_mesh_sequence"):
         op = getattr(bpy.types, "ARTDEF_OT_" + name)
         assert {'REGISTER', 'UNDO'} <= set(op.bl_options), name
         assert op.__doc__ and len(op.__doc__) > 20, f"{name} has no tooltip"
     assert hasattr(bpy.types, "ARTDEF_PT_main")
     assert bpy.types.ARTDEF_PT_main.bl_category == "ArtDef"
     fit_props = bpy.ops.artdef.fit.get_rna_type().properties
-    for prop in ("links", "mode", "motion", "p_max", "load_index"):
+    for prop in ("links", "mode", "motion", "p_max", "load_index", "frames_per_field"):
         assert fit_props[prop].description, prop
+    assert fit_props["frames_per_field"].default == 10
 
 
 def test_import_tracked_scan_round_trips(clean_scene, pkg, sample_files, tmp_path):
@@ -225,10 +228,13 @@ def test_fit_tracked_builds_rig_and_replays_fields(clean_scene, pkg, sample_file
     fields = ref.fields()
     scale = np.abs(fields).max()
     scene = bpy.context.scene
+    # the replay: rest at frame 0, field p at (p+1) * frames_per_field (default 10)
+    assert (scene.frame_start, scene.frame_end) == (0, FPF * ref.n_fields)
+    assert f"x{FPF}" in obj.artdef.fit_replay and "0-" in obj.artdef.fit_summary.splitlines()[-1]
     scene.frame_set(0)
     np.testing.assert_allclose(evaluated_positions(obj), rest, atol=1e-5 * np.abs(rest).max())
     for p in range(ref.n_fields):
-        scene.frame_set(p + 1)
+        scene.frame_set((p + 1) * FPF)
         x = evaluated_positions(obj)
         # the rig is the core's model of field p ...
         model = pkg.model.deform(result, rest, result.params[p], np.eye(ref.n_fields)[p])
@@ -384,14 +390,14 @@ def test_cancelled_fit_changes_nothing(clean_scene, pkg, sample_files):
 
     def hook(stage, fraction):
         seen.append(stage)
-        return stage == "merge"  # cancel half-way through
+        return stage == "cluster"  # cancel half-way through (distances done)
 
     pkg.ops.PROGRESS_HOOKS.append(hook)
     try:
         assert bpy.ops.artdef.fit(links=11) == {'CANCELLED'}
     finally:
         pkg.ops.PROGRESS_HOOKS.remove(hook)
-    assert "merge" in seen
+    assert "cluster" in seen
     assert scene_snapshot() == before
 
 
@@ -479,7 +485,7 @@ def test_rig_follows_mesh_transform_and_parent(clean_scene, pkg, sample_files):
     np.testing.assert_allclose(np.array(arm.matrix_world), np.array(world), atol=1e-6)
     np.testing.assert_allclose(np.array(obj.matrix_world), np.array(world), atol=1e-6)
     result = pkg.ops.last_result(obj)
-    bpy.context.scene.frame_set(1)
+    bpy.context.scene.frame_set(FPF)
     model = pkg.model.deform(result, rest, result.params[0], np.eye(result.residual.shape[0])[0])
     x = evaluated_positions(obj)  # mesh space = armature space
     assert np.abs(x - model).max() <= REL_TOL * np.abs(model - rest).max()
@@ -568,3 +574,500 @@ def test_panel_draws_scan_settings_and_summary(clean_scene, sample_files):
     assert any(l.startswith("Links: 3") for l in labels)
     assert any(l.startswith("RMS articulation") for l in labels)
     assert any(l.startswith("Time:") for l in labels)
+
+
+# --------------------------------------------------------------------------
+# fit quality you can see: residual attribute, per-link figures, replay range
+# --------------------------------------------------------------------------
+
+def test_fit_stores_residual_and_link_quality(clean_scene, pkg, sample_files, tmp_path):
+    ref = pkg.scan.load_scan(sample_files["rod"])
+    obj = import_scan(sample_files["rod"])
+    rest = rest_positions(obj)
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    result = pkg.ops.last_result(obj)
+    mesh = obj.data
+    attr = mesh.attributes["artdef_residual"]
+    assert attr.domain == 'POINT' and attr.data_type == 'FLOAT'
+    stored = np.empty(len(mesh.vertices), dtype=np.float32)
+    attr.data.foreach_get("value", stored)
+    # Independent of the core's model code: Blender's own evaluation of the
+    # rig with the residual shape keys muted is the articulated motion alone.
+    for kb in mesh.shape_keys.key_blocks[1:]:
+        kb.mute = True
+    fields = ref.fields()
+    acc = np.zeros(len(rest))
+    for p in range(ref.n_fields):
+        bpy.context.scene.frame_set((p + 1) * FPF)
+        acc += np.sum((evaluated_positions(obj) - rest - fields[p]) ** 2, axis=1)
+    want = np.sqrt(acc / ref.n_fields)
+    assert want.max() > 0
+    np.testing.assert_allclose(stored, want, atol=1e-4 * np.abs(fields).max())
+    # colours: blue at 0, red at the largest residual; the links stay the shown colours
+    col = mesh.color_attributes["artdef_residual_color"]
+    assert col.domain == 'POINT' and col.data_type == 'FLOAT_COLOR'
+    rgba = np.empty(4 * len(col.data), dtype=np.float32)
+    col.data.foreach_get("color_srgb", rgba)
+    rgba = rgba.reshape(-1, 4)
+    top, low = int(np.argmax(stored)), int(np.argmin(stored))
+    assert rgba[top, 0] > 0.8 and rgba[top, 2] < 0.2          # red
+    assert stored[low] < 0.1 * stored[top] and rgba[low, 2] > 0.8  # blue-ish
+    assert mesh.color_attributes.active_color.name == "artdef_links"
+    # per-link and overall figures, as stored properties
+    st = obj.artdef
+    assert st.fit_articulation_percent == pytest.approx(result.articulation_error_percent, rel=1e-6)
+    assert st.fit_residual_max == pytest.approx(float(stored.max()), rel=1e-5)
+    assert len(st.fit_link_stats) == 3
+    rigid = np.sqrt(np.mean(result.link_residuals ** 2, axis=0))
+    for l, item in enumerate(st.fit_link_stats):
+        assert item.name == f"artdef_link_{l:02d}" and item.link == l
+        assert item.parent == result.parents[l]
+        assert item.rigid_residual == pytest.approx(rigid[l], rel=1e-5, abs=1e-12)
+        assert item.triangles == np.count_nonzero(result.face_labels == l)
+        assert item.has_joint == bool(np.isfinite(result.joint_errors[l]))
+        if item.has_joint:
+            assert item.joint_error == pytest.approx(result.joint_errors[l], rel=1e-5, abs=1e-12)
+    assert sum(i.has_joint for i in st.fit_link_stats) >= 2
+    # the panel shows them
+    st.show_link_stats = True
+    labels = [e[1] for e in draw_panel() if e[0] == "label"]
+    assert any(l.startswith("Articulation error:") and l.endswith("%") for l in labels)
+    assert any(l.startswith("Vertex residual: mean") for l in labels)
+    assert sum(l.startswith(("00 ", "01 ", "02 ")) for l in labels) == 3
+    assert any(l.startswith("Replay: field p at frame (p+1)x10") for l in labels)
+    # ... and survive save + reload
+    path = str(tmp_path / "quality.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    obj = bpy.data.objects["rod"]
+    st = obj.artdef
+    assert len(st.fit_link_stats) == 3 and st.fit_articulation_percent > 0
+    assert st.fit_link_stats[1].rigid_residual == pytest.approx(rigid[1], rel=1e-5, abs=1e-12)
+    assert "artdef_residual" in obj.data.attributes
+    assert "artdef_residual_color" in obj.data.color_attributes
+
+
+def test_replay_frame_range_is_set_and_restored(clean_scene, sample_files):
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 5, 50
+    obj = import_scan(sample_files["rod"])
+    n_fields = obj.data["artdef_n_fields"]
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    assert (scene.frame_start, scene.frame_end) == (0, FPF * n_fields)
+    action = obj.artdef.rig.animation_data.action
+    assert tuple(action.frame_range) == (0, FPF * n_fields)
+    assert bpy.ops.artdef.fit(links=3, frames_per_field=4) == {'FINISHED'}
+    assert (scene.frame_start, scene.frame_end) == (0, 4 * n_fields)
+    assert obj.artdef.frames_per_field == 4
+    assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert (scene.frame_start, scene.frame_end) == (5, 50)
+    # a range the user changed after the fit is left alone
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    scene.frame_end = 77
+    assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert (scene.frame_start, scene.frame_end) == (0, 77)
+
+
+def test_greens_fit_keeps_frame_range(clean_scene, sample_files):
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 3, 40
+    import_scan(sample_files["greens_rod"])
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    assert (scene.frame_start, scene.frame_end) == (3, 40)  # no replay action
+    assert bpy.context.active_object.artdef.fit_replay == ""
+    assert "artdef_residual" in bpy.context.active_object.data.attributes
+
+
+# --------------------------------------------------------------------------
+# a jointed tube: numpy geometry, rigid chain poses
+# --------------------------------------------------------------------------
+
+SEGMENTS = 3
+JOINTS = np.array([[0.0, 0.0, float(z)] for z in range(SEGMENTS)])  # heads of the chain's bones
+
+
+def tube_geometry(rings_per_segment=6, sides=12, radius=0.15):
+    """Quads along z in [0, SEGMENTS] with n-gon caps; the segment of every vertex."""
+    n_rings = SEGMENTS * rings_per_segment + 1
+    z = np.linspace(0.0, SEGMENTS, n_rings)
+    a = 2 * np.pi * np.arange(sides) / sides
+    verts = np.stack([np.tile(radius * np.cos(a), n_rings), np.tile(radius * np.sin(a), n_rings),
+                      np.repeat(z, sides)], axis=1)
+    polys = []
+    for r in range(n_rings - 1):
+        for s in range(sides):
+            i, j = r * sides + s, r * sides + (s + 1) % sides
+            polys.append([i, j, j + sides, i + sides])
+    polys.append(list(range(sides))[::-1])
+    polys.append(list(range((n_rings - 1) * sides, n_rings * sides)))
+    segment = np.minimum((np.repeat(np.arange(n_rings), sides)) // rings_per_segment, SEGMENTS - 1)
+    # the joint rings belong to the segment above them, except the top ring
+    return verts, polys, segment
+
+
+def random_rotations(rng, n_poses, max_angle=0.7):
+    return rng.uniform(-max_angle, max_angle, size=(n_poses, SEGMENTS, 3))
+
+
+def chain_pose(verts, segment, eulers, basis=np.eye(3)):
+    """Rigid chain: bone b rotates by euler[b] (XYZ, in the bone frame ``basis``)
+    about JOINTS[b], children follow."""
+    from mathutils import Euler
+    out = np.empty_like(verts)
+    R_acc, t_acc = np.eye(3), np.zeros(3)
+    for b in range(SEGMENTS):
+        R = basis @ np.array(Euler(eulers[b], 'XYZ').to_matrix()) @ basis.T
+        # G_b = G_{b-1} o (rotate about joint b)
+        t_local = JOINTS[b] - R @ JOINTS[b]
+        R_acc, t_acc = R_acc @ R, R_acc @ t_local + t_acc
+        m = segment == b
+        out[m] = verts[m] @ R_acc.T + t_acc
+    return out
+
+
+def check_joints(pkg, obj, tol_fraction=0.01):
+    """The fitted rig's joints (heads of links with a parent) match JOINTS[1:]."""
+    result = pkg.ops.last_result(obj)
+    assert result.n_links == SEGMENTS
+    arm = obj.artdef.rig
+    heads = {b.name: np.array(b.head_local) for b in arm.data.bones}
+    fitted = np.array([heads[pkg.rig.GROUP_FMT.format(l)] for l in range(SEGMENTS)
+                       if result.parents[l] >= 0])
+    assert len(fitted) == SEGMENTS - 1
+    rest = rest_positions(obj)
+    diag = np.linalg.norm(np.ptp(rest, axis=0))
+    dist = np.linalg.norm(fitted[:, None] - JOINTS[None, 1:], axis=2)
+    # every true joint has a fitted one nearby, one to one
+    assert sorted(dist.argmin(axis=1).tolist()) == list(range(SEGMENTS - 1)), dist
+    err = dist.min(axis=1).max() / diag
+    assert err < tol_fraction, (err, fitted)
+    return err
+
+
+# --------------------------------------------------------------------------
+# fields from animation
+# --------------------------------------------------------------------------
+
+def _edit_bones(arm, fn):
+    view_layer = bpy.context.view_layer
+    view_layer.objects.active = arm
+    with bpy.context.temp_override(active_object=arm, object=arm, selected_objects=[arm],
+                                   selected_editable_objects=[arm]):
+        bpy.ops.object.mode_set(mode='EDIT')
+        fn(arm.data.edit_bones)
+        bpy.ops.object.mode_set(mode='OBJECT')
+
+
+def build_animated_tube(rng, n_poses=8):
+    """The user's rig: a tube skinned (hard weights) to a 3-bone chain, keyed at frames 1..n."""
+    verts, polys, segment = tube_geometry()
+    mesh = bpy.data.meshes.new("tube")
+    mesh.from_pydata(verts.tolist(), [], polys)
+    mesh.shade_smooth()
+    tube = bpy.data.objects.new("tube", mesh)
+    skel = bpy.data.objects.new("skel", bpy.data.armatures.new("skel"))
+    for ob in (skel, tube):
+        bpy.context.scene.collection.objects.link(ob)
+    skel.location = (2.0, -1.0, 0.5)  # object space is what is sampled
+
+    def bones(eb):
+        parent = None
+        for b in range(SEGMENTS):
+            bone = eb.new(f"b{b}")
+            bone.head, bone.tail = JOINTS[b], JOINTS[b] + (0, 0, 1)
+            bone.parent, bone.use_connect = parent, parent is not None
+            parent = bone
+    _edit_bones(skel, bones)
+    for b in range(SEGMENTS):
+        tube.vertex_groups.new(name=f"b{b}").add(np.flatnonzero(segment == b).tolist(), 1.0, 'REPLACE')
+    tube.parent = skel
+    mod = tube.modifiers.new("Armature", 'ARMATURE')
+    mod.object = skel
+    tube.modifiers.new("Subdivision", 'SUBSURF')  # changes topology: off while sampling
+    eulers = random_rotations(rng, n_poses)
+    for f in range(n_poses):
+        for b in range(SEGMENTS):
+            pb = skel.pose.bones[f"b{b}"]
+            pb.rotation_mode = 'XYZ'
+            pb.rotation_euler = eulers[f, b]
+            pb.keyframe_insert("rotation_euler", frame=f + 1)
+    bpy.context.view_layer.objects.active = tube
+    return tube, skel, verts, segment, eulers
+
+
+def test_armature_animation_fit_reproduces_its_joints(clean_scene, pkg):
+    """Issue 5: importing an armature-animated mesh and fitting it reproduces
+    that armature's joint positions."""
+    import time
+    rng = np.random.default_rng(5)
+    tube, skel, verts, segment, eulers = build_animated_tube(rng, n_poses=8)
+    scene = bpy.context.scene
+    scene.frame_set(4)
+    source_before = scene_snapshot()["meshes"]["tube"]
+    t0 = time.perf_counter()
+    assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=8) == {'FINISHED'}
+    sample_seconds = time.perf_counter() - t0
+    obj = bpy.context.active_object
+    assert obj.name == "tube_scan" and obj != tube
+    # the source is as it was, the frame is back
+    assert scene.frame_current == 4
+    assert scene_snapshot()["meshes"]["tube"] == source_before
+    assert all(m.show_viewport for m in tube.modifiers)
+    # the copy: no armature, parent, shape keys or animation; the subdivision stays
+    assert [m.type for m in obj.modifiers] == ['SUBSURF']
+    assert obj.parent is None and obj.data.shape_keys is None and obj.animation_data is None
+    np.testing.assert_allclose(np.array(obj.matrix_world), np.array(tube.matrix_world), atol=1e-6)
+    np.testing.assert_allclose(rest_positions(obj), verts, atol=1e-6)
+    # the fields are the rig's poses (object space), independent of Blender's evaluation
+    scan = pkg.io.read_scan(obj).scan
+    assert scan.kind == "tracked" and scan.n_fields == 8
+    assert list(obj.data["artdef_frames"]) == list(range(1, 9))
+    basis = np.array(skel.data.bones["b0"].matrix_local.to_3x3())  # bone y = world z
+    for f in range(8):
+        np.testing.assert_allclose(verts + scan.displacements[f],
+                                   chain_pose(verts, segment, eulers[f], basis), atol=1e-5)
+    # fit: the rig's joints are the armature's
+    assert bpy.ops.artdef.fit(links=SEGMENTS) == {'FINISHED'}
+    err = check_joints(pkg, obj)
+    print(f"armature tube: {len(verts)} vertices, sampling {sample_seconds:.3f} s, "
+          f"joint error {100 * err:.3f}% of the diagonal")
+    # the fit's armature deforms the copy only (nothing stacks on the user's rig)
+    assert obj.modifiers[0].object == obj.artdef.rig and len(tube.modifiers) == 2
+
+
+def test_fields_from_shape_key_animation_with_rest_frame(clean_scene, pkg):
+    verts, polys, segment = tube_geometry(rings_per_segment=2, sides=6)
+    mesh = bpy.data.meshes.new("blob")
+    mesh.from_pydata(verts.tolist(), [], polys)
+    obj = bpy.data.objects.new("blob", mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    bpy.context.view_layer.objects.active = obj
+    obj.shape_key_add(name="Basis")
+    offsets = [np.outer(segment == s, [0.1 * (s + 1), 0.0, 0.05]) for s in range(2)]
+    for s, off in enumerate(offsets):
+        kb = obj.shape_key_add(name=f"k{s}")
+        kb.data.foreach_set("co", (verts + off).astype(np.float32).ravel())
+    values = {1: (1.0, 0.0), 2: (0.0, 1.0), 3: (0.5, 0.5), 4: (0.5, 0.5)}
+    keys = mesh.shape_keys.key_blocks
+    for f, vals in values.items():
+        for s, v in enumerate(vals):
+            keys[f"k{s}"].value = v
+            keys[f"k{s}"].keyframe_insert("value", frame=f)
+    assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=4, rest_frame=3) == {'FINISHED'}
+    new = bpy.context.active_object
+    assert new.name == "blob_scan" and new.data.shape_keys is None
+    assert new.data["artdef_rest_frame"] == 3
+    mix = {f: verts + sum(v * o for v, o in zip(vals, offsets)) for f, vals in values.items()}
+    np.testing.assert_allclose(rest_positions(new), mix[3], atol=1e-6)
+    scan = pkg.io.read_scan(new).scan
+    # frames 3 and 4 equal the rest: skipped
+    assert list(new.data["artdef_frames"]) == [1, 2] and scan.n_fields == 2
+    for i, f in enumerate((1, 2)):
+        np.testing.assert_allclose(scan.displacements[i], mix[f] - mix[3], atol=1e-6)
+    # default rest: the base mesh; the scene's frame range by default
+    bpy.context.view_layer.objects.active = obj
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = 1, 2
+    assert bpy.ops.artdef.fields_from_animation() == {'FINISHED'}
+    scan = pkg.io.read_scan(bpy.context.active_object).scan
+    np.testing.assert_allclose(scan.vertices, verts, atol=1e-6)
+    np.testing.assert_allclose(scan.displacements[0], offsets[0], atol=1e-6)
+
+
+def _vertex_cutting_nodes():
+    """Geometry nodes that delete the vertices with index < current frame."""
+    ng = bpy.data.node_groups.new("cut", 'GeometryNodeTree')
+    ng.interface.new_socket("Geometry", in_out='INPUT', socket_type='NodeSocketGeometry')
+    ng.interface.new_socket("Geometry", in_out='OUTPUT', socket_type='NodeSocketGeometry')
+    n = ng.nodes
+    gin, gout = n.new('NodeGroupInput'), n.new('NodeGroupOutput')
+    delete, index = n.new('GeometryNodeDeleteGeometry'), n.new('GeometryNodeInputIndex')
+    time_, compare = n.new('GeometryNodeInputSceneTime'), n.new('FunctionNodeCompare')
+    compare.data_type, compare.operation = 'FLOAT', 'LESS_THAN'
+    ng.links.new(index.outputs[0], compare.inputs[0])
+    ng.links.new(time_.outputs["Frame"], compare.inputs[1])
+    ng.links.new(gin.outputs[0], delete.inputs["Geometry"])
+    ng.links.new(compare.outputs[0], delete.inputs["Selection"])
+    ng.links.new(delete.outputs[0], gout.inputs[0])
+    return ng
+
+
+def test_fields_from_animation_reports_changing_connectivity(clean_scene):
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=8, ring_count=6)
+    obj = bpy.context.active_object
+    n = len(obj.data.vertices)
+    mod = obj.modifiers.new("Cut", 'NODES')
+    mod.node_group = _vertex_cutting_nodes()
+    before = scene_snapshot()
+    frame = bpy.context.scene.frame_current
+    with pytest.raises(RuntimeError, match=f"connectivity differs at frame 1: {n - 1} vertices, "
+                                           f"expected {n}"):
+        bpy.ops.artdef.fields_from_animation(frame_start=0, frame_end=3)
+    assert scene_snapshot() == before and bpy.context.scene.frame_current == frame
+    with pytest.raises(RuntimeError, match="empty"):
+        bpy.ops.artdef.fields_from_animation(frame_start=5, frame_end=3)
+    mod.show_viewport = False  # nothing moves now
+    with pytest.raises(RuntimeError, match="does not move"):
+        bpy.ops.artdef.fields_from_animation(frame_start=0, frame_end=3)
+    assert len(bpy.data.objects) == 1
+
+
+# --------------------------------------------------------------------------
+# glTF morph targets arrive as shape keys
+# --------------------------------------------------------------------------
+
+def test_gltf_morph_targets_become_fields(clean_scene, pkg, sample_files, tmp_path):
+    ref = pkg.scan.load_scan(sample_files["rod"])
+    mesh = bpy.data.meshes.new("morphs")
+    mesh.from_pydata(ref.vertices.tolist(), [], ref.faces.tolist())
+    mesh.shade_smooth()
+    obj = bpy.data.objects.new("morphs", mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    obj.shape_key_add(name="Basis")
+    for p, d in enumerate(ref.displacements):
+        obj.shape_key_add(name=f"pose{p}").data.foreach_set(
+            "co", (ref.vertices + d).astype(np.float32).ravel())
+    glb = str(tmp_path / "morphs.glb")
+    assert bpy.ops.export_scene.gltf(  # the scene holds only this mesh
+        filepath=glb, export_format='GLB', export_yup=True,
+        export_morph=True, export_morph_normal=False, export_normals=False,
+        export_texcoords=False, export_animations=False, export_materials='NONE') == {'FINISHED'}
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    assert bpy.ops.import_scene.gltf(filepath=glb) == {'FINISHED'}
+    imported = [o for o in bpy.data.objects if o.type == 'MESH']
+    assert len(imported) == 1
+    obj = imported[0]
+    bpy.context.view_layer.objects.active = obj
+    names = [k.name for k in obj.data.shape_keys.key_blocks]
+    assert names[1:] == [f"pose{p}" for p in range(ref.n_fields)]
+    assert bpy.ops.artdef.fields_from_shape_keys() == {'FINISHED'}
+    scan = pkg.io.read_scan(obj).scan
+    # same vertices (maybe reordered): match them by rest position
+    assert len(scan.vertices) == len(ref.vertices)
+    d = np.linalg.norm(scan.vertices[:, None] - ref.vertices[None], axis=2)
+    order = d.argmin(axis=1)
+    assert d.min(axis=1).max() < 1e-5 and len(np.unique(order)) == len(order)
+    np.testing.assert_allclose(scan.displacements, ref.displacements[:, order], atol=1e-5)
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    assert len(obj.artdef.rig.data.bones) == 3
+    assert pkg.ops.last_result(obj).n_links == 3
+
+
+# --------------------------------------------------------------------------
+# mesh sequences (OBJ / PLY)
+# --------------------------------------------------------------------------
+
+def write_obj(path, verts, polys):
+    with open(path, "w") as f:
+        f.write("# ArtDef test\no tube\n")
+        f.writelines(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in verts)
+        f.write("vn 0 0 1\n")
+        f.writelines("f " + " ".join(f"{i + 1}//1" for i in poly) + "\n" for poly in polys)
+
+
+def write_ply(path, verts, polys, fmt):
+    head = (f"ply\nformat {fmt} 1.0\ncomment ArtDef test\nelement vertex {len(verts)}\n"
+            "property float x\nproperty float y\nproperty float z\nproperty uchar flag\n"
+            f"element face {len(polys)}\nproperty list uchar int vertex_indices\nend_header\n")
+    with open(path, "wb") as f:
+        f.write(head.encode())
+        if fmt == "ascii":
+            f.writelines(f"{x:.9g} {y:.9g} {z:.9g} 1\n".encode() for x, y, z in verts)
+            f.writelines((f"{len(p)} " + " ".join(map(str, p)) + "\n").encode() for p in polys)
+        else:
+            vt = np.zeros(len(verts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("f", "u1")])
+            vt["x"], vt["y"], vt["z"] = np.asarray(verts).T
+            f.write(vt.tobytes())
+            for p in polys:
+                f.write(bytes([len(p)]) + np.asarray(p, dtype="<i4").tobytes())
+
+
+@pytest.fixture(scope="module")
+def tube_poses():
+    verts, polys, segment = tube_geometry()
+    eulers = random_rotations(np.random.default_rng(11), 6)
+    return verts, polys, [verts] + [chain_pose(verts, segment, e) for e in eulers]
+
+
+def write_sequence(directory, poses, polys, name="pose_{:03d}.obj", fmt=None):
+    directory.mkdir(exist_ok=True)
+    paths = []
+    for i, x in enumerate(poses):
+        path = directory / name.format(i)
+        write_obj(path, x, polys) if fmt is None else write_ply(path, x, polys, fmt)
+        paths.append(str(path))
+    return paths
+
+
+def test_mesh_sequence_import_and_fit(clean_scene, pkg, tube_poses, tmp_path):
+    verts, polys, poses = tube_poses
+    paths = write_sequence(tmp_path / "obj", poses, polys)
+    assert bpy.ops.artdef.import_mesh_sequence(filepath=paths[0]) == {'FINISHED'}
+    obj = bpy.context.active_object
+    assert obj.name == "pose"
+    assert len(obj.data.polygons) == len(polys)  # quads and caps kept as polygons
+    scan = pkg.io.read_scan(obj).scan
+    assert scan.kind == "tracked" and scan.n_fields == len(poses) - 1
+    np.testing.assert_allclose(scan.vertices, verts, atol=1e-6)
+    for p in range(1, len(poses)):
+        np.testing.assert_allclose(scan.displacements[p - 1], poses[p] - verts, atol=1e-6)
+    assert bpy.ops.artdef.fit(links=SEGMENTS) == {'FINISHED'}
+    check_joints(pkg, obj)
+    # PLY (ASCII and binary) sequences read the same; another rest pose on request
+    for fmt in ("ascii", "binary_little_endian"):
+        ply = write_sequence(tmp_path / fmt, poses, polys, name="scan{:d}.ply", fmt=fmt)
+        assert bpy.ops.artdef.import_mesh_sequence(filepath=ply[3], rest_number=2) == {'FINISHED'}
+        obj = bpy.context.active_object
+        assert obj.name.startswith("scan") and obj.data["artdef_rest_file"] == "scan2.ply"
+        scan = pkg.io.read_scan(obj).scan
+        np.testing.assert_allclose(scan.vertices, poses[2], atol=1e-5)
+        others = [x for i, x in enumerate(poses) if i != 2]
+        np.testing.assert_allclose(scan.displacements, np.array(others) - poses[2], atol=1e-5)
+    # a folder with one sequence works too
+    assert bpy.ops.artdef.import_mesh_sequence(directory=str(tmp_path / "obj")) == {'FINISHED'}
+
+
+@pytest.mark.parametrize("problem", ["faces", "vertices", "not_numbered", "unreadable", "single",
+                                     "rest_number"])
+def test_mesh_sequence_errors(clean_scene, tube_poses, tmp_path, problem):
+    verts, polys, poses = tube_poses
+    paths = write_sequence(tmp_path / "seq", poses[:5], polys)
+    first = paths[0]
+    if problem == "faces":
+        write_obj(paths[4], poses[4], polys + [[0, 1, 13]])
+        match = f"connectivity differs: pose_004.obj has {len(polys) + 1} faces, expected {len(polys)}"
+    elif problem == "vertices":
+        write_obj(paths[2], np.vstack([poses[2], [[9, 9, 9]]]), polys)
+        match = f"connectivity differs: pose_002.obj has {len(verts) + 1} vertices, expected {len(verts)}"
+    elif problem == "not_numbered":
+        first = str(tmp_path / "seq" / "pose.obj")
+        write_obj(first, verts, polys)
+        match = "pose.obj is not numbered"
+    elif problem == "unreadable":
+        with open(paths[3], "wb") as f:
+            f.write(b"\x00\x01garbage" * 10)
+        match = "cannot read pose_003.obj"
+    elif problem == "single":
+        first = str(tmp_path / "one_0.obj")
+        write_obj(first, verts, polys)
+        match = "at least 2 numbered files"
+    else:
+        match = "no file numbered 9"
+    before = (len(bpy.data.objects), len(bpy.data.meshes))
+    with pytest.raises(RuntimeError, match=match):
+        bpy.ops.artdef.import_mesh_sequence(filepath=first,
+                                            rest_number=9 if problem == "rest_number" else -1)
+    assert (len(bpy.data.objects), len(bpy.data.meshes)) == before
+
+
+def test_sequence_reader_needs_no_bpy(installed_addon):
+    """operators/sequence.py is plain Python + numpy (usable outside Blender)."""
+    import subprocess
+    import sys
+    path = importlib.import_module(installed_addon + ".operators.sequence").__file__
+    code = ("import sys, importlib.util\nsys.modules['bpy'] = None\n"
+            f"spec = importlib.util.spec_from_file_location('seq', {path!r})\n"
+            "m = importlib.util.module_from_spec(spec); spec.loader.exec_module(m)\n"
+            "print(m.fan_triangles([4, 3], [0, 1, 2, 3, 3, 2, 4]).tolist())\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[[0, 1, 2], [0, 2, 3], [3, 2, 4]]"
