@@ -265,6 +265,45 @@ def _read_ply_ascii(data, body, elements, name):
     return vertices, sizes, indices
 
 
+def _walk_lists(data, pos, count, ctype, itype, name, ename):
+    """Sizes and start offsets of ``count`` lists (count type ``ctype``) from ``pos``."""
+    sizes = np.empty(count, dtype=np.int64)
+    starts = np.empty(count, dtype=np.int64)
+    csize, isize = ctype.itemsize, itype.itemsize
+    end = len(data)
+    if csize == 1:
+        for k in range(count):
+            if pos >= end:
+                raise SequenceError(f"{name}: the file ends inside the PLY '{ename}' element")
+            n = data[pos]
+            sizes[k] = n
+            starts[k] = pos + 1
+            pos += 1 + n * isize
+    else:
+        code = ctype.str  # e.g. '<i4'
+        for k in range(count):
+            if pos + csize > end:
+                raise SequenceError(f"{name}: the file ends inside the PLY '{ename}' element")
+            n = int(np.frombuffer(data, dtype=code, count=1, offset=pos)[0])
+            sizes[k] = n
+            starts[k] = pos + csize
+            pos += csize + n * isize
+    if pos > end:
+        raise SequenceError(f"{name}: the file ends inside the PLY '{ename}' element")
+    return sizes, starts, pos
+
+
+def _gather(data, starts, sizes, itype):
+    """The list items at ``starts`` (``sizes`` each, type ``itype``) as one int64 array."""
+    isize = itype.itemsize
+    first = np.repeat(starts, sizes)
+    k = np.arange(len(first)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    at = first + k * isize
+    buf = np.frombuffer(data, dtype=np.uint8)
+    raw = buf[at[:, None] + np.arange(isize)]
+    return np.ascontiguousarray(raw).view(itype).reshape(-1).astype(np.int64)
+
+
 def _read_ply_binary(data, body, elements, name, endian):
     pos = body
     vertices = sizes = indices = None
@@ -299,6 +338,12 @@ def _read_ply_binary(data, body, elements, name, endian):
                         sizes = np.full(count, n, dtype=np.int64)
                         indices = table["i"].astype(np.int64).reshape(-1)
                     continue
+            # Lists of mixed lengths: walk the counts, then gather every index at once.
+            sz, starts, pos = _walk_lists(data, pos, count, ctype, itype, name, ename)
+            if which == 0:
+                sizes = sz
+                indices = _gather(data, starts, sz, itype)
+            continue
         # General path: element by element.
         sz, flat = [], []
         for _ in range(count):

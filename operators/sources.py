@@ -67,13 +67,24 @@ def _link_like(context, new, like=None):
 # --------------------------------------------------------------------------
 
 def _topology(mesh):
-    """(vertex count, loop vertex indices, polygon sizes) of a mesh."""
-    n_loops, n_poly = len(mesh.loops), len(mesh.polygons)
-    loops = np.empty(n_loops, dtype=np.int32)
-    mesh.loops.foreach_get("vertex_index", loops)
-    sizes = np.empty(n_poly, dtype=np.int32)
-    mesh.polygons.foreach_get("loop_total", sizes)
-    return len(mesh.vertices), loops, sizes
+    """(vertex count, polygon count, corner vertex indices) of a mesh."""
+    n_loops = len(mesh.loops)
+    corners = np.empty(n_loops, dtype=np.int32)
+    attr = mesh.attributes.get(".corner_vert")  # 0.1 ms per 400k corners, vs 70 ms via loops
+    if attr is not None and attr.domain == 'CORNER' and len(attr.data) == n_loops:
+        attr.data.foreach_get("value", corners)
+    else:
+        mesh.loops.foreach_get("vertex_index", corners)
+    return len(mesh.vertices), len(mesh.polygons), corners
+
+
+def _read_positions(mesh, out):
+    """Vertex positions into the float32 (N*3,) array ``out`` (fast attribute path)."""
+    attr = mesh.attributes.get("position")
+    if attr is not None and attr.data_type == 'FLOAT_VECTOR' and len(attr.data) == len(mesh.vertices):
+        attr.data.foreach_get("vector", out)
+    else:
+        mesh.vertices.foreach_get("co", out)
 
 
 def sample_positions(context, obj, frames):
@@ -85,7 +96,7 @@ def sample_positions(context, obj, frames):
     does not have the base mesh's vertices and faces.
     """
     scene = context.scene
-    n, base_loops, base_sizes = _topology(obj.data)
+    n, base_polys, base_corners = _topology(obj.data)
     out = np.empty((len(frames), n, 3), dtype=np.float32)
     frame_before, subframe_before = scene.frame_current, scene.frame_subframe
     switched = [m for m in obj.modifiers if m.type in GENERATE_MODIFIERS and m.show_viewport]
@@ -100,17 +111,17 @@ def sample_positions(context, obj, frames):
             ev = obj.evaluated_get(depsgraph)
             me = ev.to_mesh()
             try:
-                nv, loops, sizes = _topology(me)
+                nv, n_polys, corners = _topology(me)
                 if nv != n:
                     hint = (f" (check the modifier{'s' if len(moving) > 1 else ''} "
                             f"{', '.join(repr(m) for m in moving)})" if moving else "")
                     raise _scan.ScanError(f"connectivity differs at frame {frame}: {nv} vertices, "
                                           f"expected {n}{hint}")
-                if not (np.array_equal(sizes, base_sizes) and np.array_equal(loops, base_loops)):
+                if n_polys != base_polys or not np.array_equal(corners, base_corners):
                     raise _scan.ScanError(
                         f"connectivity differs at frame {frame}: the faces changed "
-                        f"({len(sizes)} faces, expected {len(base_sizes)})")
-                me.vertices.foreach_get("co", out[i].reshape(-1))
+                        f"({n_polys} faces, expected {base_polys})")
+                _read_positions(me, out[i].reshape(-1))
             finally:
                 ev.to_mesh_clear()
     finally:
@@ -225,7 +236,7 @@ class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
             rest = positions[at[self.rest_frame]].astype(np.float64)
         else:
             rest = np.empty(3 * n, dtype=np.float32)
-            mesh.vertices.foreach_get("co", rest)
+            _read_positions(mesh, rest)
             rest = rest.reshape(n, 3).astype(np.float64)
         disp = positions[[at[f] for f in frames]].astype(np.float64) - rest[None]
         extent = float(np.ptp(rest, axis=0).max()) or 1.0

@@ -709,19 +709,34 @@ def random_rotations(rng, n_poses, max_angle=0.7):
     return rng.uniform(-max_angle, max_angle, size=(n_poses, SEGMENTS, 3))
 
 
-def chain_pose(verts, segment, eulers, basis=np.eye(3)):
-    """Rigid chain: bone b rotates by euler[b] (XYZ, in the bone frame ``basis``)
-    about JOINTS[b], children follow."""
+def tube_weights(verts, blend=0.0):
+    """(N, SEGMENTS) skin weights: hard by segment, or blended linearly over
+    ``blend`` on either side of each joint (like a painted character)."""
+    z = verts[:, 2]
+    w = np.zeros((len(verts), SEGMENTS))
+    lower = np.ones(len(verts))
+    for b in range(1, SEGMENTS):
+        zj = JOINTS[b, 2]
+        t = (np.clip((z - zj + blend) / (2 * blend), 0.0, 1.0) if blend > 0
+             else (z >= zj).astype(float))
+        w[:, b - 1] = lower * (1 - t)
+        lower = lower * t
+    w[:, -1] = lower
+    return w
+
+
+def chain_pose(verts, weights, eulers, basis=np.eye(3)):
+    """Linear blend skinning of a chain: bone b rotates by euler[b] (XYZ, in the
+    bone frame ``basis``) about JOINTS[b], children follow."""
     from mathutils import Euler
-    out = np.empty_like(verts)
+    out = np.zeros_like(verts)
     R_acc, t_acc = np.eye(3), np.zeros(3)
     for b in range(SEGMENTS):
         R = basis @ np.array(Euler(eulers[b], 'XYZ').to_matrix()) @ basis.T
         # G_b = G_{b-1} o (rotate about joint b)
         t_local = JOINTS[b] - R @ JOINTS[b]
         R_acc, t_acc = R_acc @ R, R_acc @ t_local + t_acc
-        m = segment == b
-        out[m] = verts[m] @ R_acc.T + t_acc
+        out += weights[:, b:b + 1] * (verts @ R_acc.T + t_acc)
     return out
 
 
@@ -758,9 +773,10 @@ def _edit_bones(arm, fn):
         bpy.ops.object.mode_set(mode='OBJECT')
 
 
-def build_animated_tube(rng, n_poses=8):
-    """The user's rig: a tube skinned (hard weights) to a 3-bone chain, keyed at frames 1..n."""
+def build_animated_tube(rng, n_poses=8, blend=0.0):
+    """The user's rig: a tube skinned to a 3-bone chain, keyed at frames 1..n."""
     verts, polys, segment = tube_geometry()
+    weights = tube_weights(verts, blend)
     mesh = bpy.data.meshes.new("tube")
     mesh.from_pydata(verts.tolist(), [], polys)
     mesh.shade_smooth()
@@ -779,7 +795,9 @@ def build_animated_tube(rng, n_poses=8):
             parent = bone
     _edit_bones(skel, bones)
     for b in range(SEGMENTS):
-        tube.vertex_groups.new(name=f"b{b}").add(np.flatnonzero(segment == b).tolist(), 1.0, 'REPLACE')
+        vg = tube.vertex_groups.new(name=f"b{b}")
+        for i in np.flatnonzero(weights[:, b] > 0):
+            vg.add([int(i)], float(weights[i, b]), 'REPLACE')
     tube.parent = skel
     mod = tube.modifiers.new("Armature", 'ARMATURE')
     mod.object = skel
@@ -792,15 +810,16 @@ def build_animated_tube(rng, n_poses=8):
             pb.rotation_euler = eulers[f, b]
             pb.keyframe_insert("rotation_euler", frame=f + 1)
     bpy.context.view_layer.objects.active = tube
-    return tube, skel, verts, segment, eulers
+    return tube, skel, verts, weights, eulers
 
 
-def test_armature_animation_fit_reproduces_its_joints(clean_scene, pkg):
+@pytest.mark.parametrize("blend", [0.0, 0.3], ids=["hard-weights", "blended-weights"])
+def test_armature_animation_fit_reproduces_its_joints(clean_scene, pkg, blend):
     """Issue 5: importing an armature-animated mesh and fitting it reproduces
     that armature's joint positions."""
     import time
     rng = np.random.default_rng(5)
-    tube, skel, verts, segment, eulers = build_animated_tube(rng, n_poses=8)
+    tube, skel, verts, weights, eulers = build_animated_tube(rng, n_poses=8, blend=blend)
     scene = bpy.context.scene
     scene.frame_set(4)
     source_before = scene_snapshot()["meshes"]["tube"]
@@ -825,11 +844,11 @@ def test_armature_animation_fit_reproduces_its_joints(clean_scene, pkg):
     basis = np.array(skel.data.bones["b0"].matrix_local.to_3x3())  # bone y = world z
     for f in range(8):
         np.testing.assert_allclose(verts + scan.displacements[f],
-                                   chain_pose(verts, segment, eulers[f], basis), atol=1e-5)
+                                   chain_pose(verts, weights, eulers[f], basis), atol=1e-5)
     # fit: the rig's joints are the armature's
     assert bpy.ops.artdef.fit(links=SEGMENTS) == {'FINISHED'}
     err = check_joints(pkg, obj)
-    print(f"armature tube: {len(verts)} vertices, sampling {sample_seconds:.3f} s, "
+    print(f"armature tube (blend {blend}): {len(verts)} vertices, sampling {sample_seconds:.3f} s, "
           f"joint error {100 * err:.3f}% of the diagonal")
     # the fit's armature deforms the copy only (nothing stacks on the user's rig)
     assert obj.modifiers[0].object == obj.artdef.rig and len(tube.modifiers) == 2
@@ -985,7 +1004,8 @@ def write_ply(path, verts, polys, fmt):
 def tube_poses():
     verts, polys, segment = tube_geometry()
     eulers = random_rotations(np.random.default_rng(11), 6)
-    return verts, polys, [verts] + [chain_pose(verts, segment, e) for e in eulers]
+    weights = tube_weights(verts)
+    return verts, polys, [verts] + [chain_pose(verts, weights, e) for e in eulers]
 
 
 def write_sequence(directory, poses, polys, name="pose_{:03d}.obj", fmt=None):
@@ -1071,3 +1091,60 @@ def test_sequence_reader_needs_no_bpy(installed_addon):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[[0, 1, 2], [0, 2, 3], [3, 2, 4]]"
+
+
+def test_ply_reader_skips_other_properties_and_elements(pkg, tmp_path):
+    seq = importlib.import_module(pkg.io.__name__.rsplit(".", 1)[0] + ".sequence")
+    verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 2, 0]], dtype=np.float64)
+    polys = [[0, 1, 2, 3], [3, 2, 4]]
+    for fmt, e in (("binary_big_endian", ">"), ("binary_little_endian", "<"), ("ascii", None)):
+        head = (f"ply\nformat {fmt} 1.0\nelement vertex 5\nproperty double z0\nproperty double x\n"
+                "property double y\nproperty double z\nelement face 2\nproperty uchar flag\n"
+                "property list ushort uint vertex_indices\nproperty list uchar float uvs\n"
+                "element edge 1\nproperty int a\nproperty int b\nend_header\n")
+        path = tmp_path / f"m_{fmt}.ply"
+        with open(path, "wb") as f:
+            f.write(head.encode())
+            if e is None:
+                f.writelines(f"9 {x} {y} {z}\n".encode() for x, y, z in verts)
+                f.writelines(f"7 {len(p)} {' '.join(map(str, p))} 2 0.5 0.5\n".encode() for p in polys)
+                f.write(b"0 1\n")
+            else:
+                f.write(np.column_stack([np.full(5, 9.0), verts]).astype(e + "f8").tobytes())
+                for p in polys:
+                    f.write(b"\x07" + np.array([len(p)], e + "u2").tobytes()
+                            + np.array(p, e + "u4").tobytes() + b"\x02" + np.zeros(2, e + "f4").tobytes())
+                f.write(np.array([0, 1], e + "i4").tobytes())
+        m = seq.read_ply(str(path))
+        np.testing.assert_array_equal(m.vertices, verts)
+        assert m.sizes.tolist() == [4, 3] and m.indices.tolist() == [0, 1, 2, 3, 3, 2, 4]
+        assert m.triangles.tolist() == [[0, 1, 2], [0, 2, 3], [3, 2, 4]]
+    (tmp_path / "short.ply").write_bytes(head.replace("ascii", "binary_little_endian").encode() + b"\0" * 7)
+    with pytest.raises(seq.SequenceError, match="ends inside"):
+        seq.read_ply(str(tmp_path / "short.ply"))
+
+
+def test_new_sources_undo(clean_scene, tube_poses, tmp_path):
+    verts, polys, poses = tube_poses
+    paths = write_sequence(tmp_path / "seq", poses[:3], polys)
+    bpy.ops.ed.undo_push(message="empty")
+    assert bpy.ops.artdef.import_mesh_sequence('EXEC_DEFAULT', True, filepath=paths[0]) == {'FINISHED'}
+    assert [o.name for o in bpy.data.objects] == ["pose"]
+    obj = bpy.data.objects["pose"]
+    obj.shape_key_add(name="Basis")
+    kb = obj.shape_key_add(name="bend")
+    kb.data.foreach_set("co", poses[1].astype(np.float32).ravel())
+    kb.value = 0.0
+    kb.keyframe_insert("value", frame=1)
+    kb.value = 1.0
+    kb.keyframe_insert("value", frame=2)
+    bpy.ops.ed.undo_push(message="keyed")
+    before = scene_snapshot()
+    assert bpy.ops.artdef.fields_from_animation('EXEC_DEFAULT', True, frame_start=1,
+                                                frame_end=2) == {'FINISHED'}
+    assert sorted(o.name for o in bpy.data.objects) == ["pose", "pose_scan"]
+    assert bpy.ops.ed.undo() == {'FINISHED'}
+    assert scene_snapshot() == before
+    assert bpy.ops.ed.undo() == {'FINISHED'}
+    assert bpy.ops.ed.undo() == {'FINISHED'}
+    assert len(bpy.data.objects) == 0
