@@ -512,6 +512,48 @@ class ARTDEF_OT_preview_links(bpy.types.Operator):
 
 
 # --------------------------------------------------------------------------
+# which fit colours the viewport shows
+# --------------------------------------------------------------------------
+
+class ARTDEF_OT_show_colours(bpy.types.Operator):
+    """Show the fit's link colours or its per-vertex articulation residual (blue = 0, red = largest) on the active mesh (sets the active colour attribute and the viewport's solid shading to attribute colours)"""
+    bl_idname = "artdef.show_colours"
+    bl_label = "Show Fit Colours"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    which: EnumProperty(
+        name="Show", default='LINKS',
+        items=(('LINKS', "Links", "Faces coloured by link ('artdef_links')"),
+               ('RESIDUAL', "Residual", "Vertices coloured by articulation residual "
+                                        "('artdef_residual_color')")),
+        description="Which colour attribute to show")
+
+    @classmethod
+    def poll(cls, context):
+        obj = _active_mesh(context)
+        if obj is None:
+            cls.poll_message_set("Select a mesh object")
+            return False
+        attrs = obj.data.color_attributes
+        if rig.COLOR_ATTR not in attrs and rig.RESIDUAL_COLOR_ATTR not in attrs:
+            cls.poll_message_set("Fit or preview links first")
+            return False
+        return True
+
+    def execute(self, context):
+        mesh = context.active_object.data
+        name = rig.COLOR_ATTR if self.which == 'LINKS' else rig.RESIDUAL_COLOR_ATTR
+        if name not in mesh.color_attributes:
+            self.report({'ERROR'}, f"'{mesh.name}' has no colour attribute '{name}'")
+            return {'CANCELLED'}
+        rig.set_active_colour(mesh, name)
+        space = context.space_data
+        if space is not None and space.type == 'VIEW_3D' and space.shading.type == 'SOLID':
+            space.shading.color_type = 'VERTEX'
+        return {'FINISHED'}
+
+
+# --------------------------------------------------------------------------
 # clear
 # --------------------------------------------------------------------------
 
@@ -548,6 +590,7 @@ classes = (
     ARTDEF_OT_fields_from_shape_keys,
     ARTDEF_OT_fit,
     ARTDEF_OT_preview_links,
+    ARTDEF_OT_show_colours,
     ARTDEF_OT_clear_rig,
 )
 if ARTDEF_FH_scan is not None:

@@ -84,7 +84,7 @@ def write_link_colours(mesh, tri_labels, tri_polygons):
         mesh.color_attributes.remove(old)
     attr = mesh.color_attributes.new(COLOR_ATTR, 'BYTE_COLOR', 'CORNER')
     attr.data.foreach_set("color_srgb", np.ascontiguousarray(colours, dtype=np.float32).ravel())
-    _set_active_colour(mesh, COLOR_ATTR)
+    set_active_colour(mesh, COLOR_ATTR)
     return mesh.color_attributes.get(COLOR_ATTR)
 
 
@@ -94,7 +94,8 @@ def remove_link_colours(mesh):
         mesh.color_attributes.remove(attr)
 
 
-def _set_active_colour(mesh, name):
+def set_active_colour(mesh, name):
+    """Make colour attribute ``name`` the active and the rendered one."""
     attrs = mesh.color_attributes
     attr = attrs.get(name)
     if attr is None:
@@ -120,7 +121,7 @@ def write_residual(mesh, values, scale):
     col = mesh.color_attributes.new(RESIDUAL_COLOR_ATTR, 'FLOAT_COLOR', 'POINT')
     col.data.foreach_set("color_srgb", np.ascontiguousarray(colours, dtype=np.float32).ravel())
     if active_name is not None:
-        _set_active_colour(mesh, active_name)
+        set_active_colour(mesh, active_name)
 
 
 def remove_residual(mesh):

@@ -94,7 +94,7 @@ class ARTDEF_PT_main(bpy.types.Panel):
                 col.label(text=st.fit_replay.capitalize(), icon='ACTION')
             if st.rig is not None:
                 col.label(text=f"Rig: {st.rig.name}", icon='OUTLINER_OB_ARMATURE')
-            _draw_colours(box, mesh)
+            _draw_colours(box, mesh, st)
             if len(st.fit_link_stats):
                 _draw_link_stats(box, st)
             if st.fit_summary:
@@ -113,15 +113,22 @@ def _rel(value, st):
     return f"{value:.3g}"
 
 
-def _draw_colours(layout, mesh):
-    """Which colour attribute the viewport shows: links or the residual."""
+def _draw_colours(layout, mesh, st):
+    """Buttons: show the link colours or the residual colours (and their scale)."""
     attrs = mesh.color_attributes
     if rig.RESIDUAL_COLOR_ATTR not in attrs:
         return
+    active = attrs.active_color.name if attrs.active_color is not None else ""
     row = layout.row(align=True)
-    if "active_color_name" in attrs.bl_rna.properties:
-        row.prop(attrs, "active_color_name", text="Colours")
-    layout.label(text="Residual colours: blue 0, red = max", icon='INFO')
+    row.label(text="Show:")
+    for which, name, text in (('LINKS', rig.COLOR_ATTR, "Links"),
+                              ('RESIDUAL', rig.RESIDUAL_COLOR_ATTR, "Residual")):
+        sub = row.row(align=True)
+        sub.enabled = name in attrs
+        sub.operator("artdef.show_colours", text=text,
+                     depress=active == name).which = which
+    if active == rig.RESIDUAL_COLOR_ATTR:
+        layout.label(text=f"Blue 0, red {_rel(st.fit_residual_max, st)}", icon='INFO')
 
 
 def _draw_link_stats(layout, st):

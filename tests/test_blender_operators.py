@@ -113,7 +113,7 @@ def scene_snapshot():
 
 def test_registered_ui(installed_addon):
     for name in ("import_scan", "fields_from_shape_keys", "fit", "preview_links", "clear_rig",
-                 "fields_from_animation", "import_mesh_sequence"):
+                 "fields_from_animation", "import_mesh_sequence", "show_colours"):
         op = getattr(bpy.types, "ARTDEF_OT_" + name)
         assert {'REGISTER', 'UNDO'} <= set(op.bl_options), name
         assert op.__doc__ and len(op.__doc__) > 20, f"{name} has no tooltip"
@@ -548,6 +548,7 @@ class _Layout:
 
     def __setattr__(self, key, value):
         assert key in ("scale_y", "use_property_split", "use_property_decorate", "enabled", "alert")
+        self.log.append(("set", key, value))
 
 
 def draw_panel():
@@ -635,6 +636,13 @@ def test_fit_stores_residual_and_link_quality(clean_scene, pkg, sample_files, tm
     assert any(l.startswith("Vertex residual: mean") for l in labels)
     assert sum(l.startswith(("00 ", "01 ", "02 ")) for l in labels) == 3
     assert any(l.startswith("Replay: field p at frame (p+1)x10") for l in labels)
+    assert bpy.ops.artdef.show_colours(which='RESIDUAL') == {'FINISHED'}
+    assert mesh.color_attributes.active_color.name == "artdef_residual_color"
+    log = draw_panel()
+    assert ("operator", "artdef.show_colours", True) in log
+    assert any(e[0] == "label" and e[1].startswith("Blue 0, red ") for e in log)
+    assert bpy.ops.artdef.show_colours(which='LINKS') == {'FINISHED'}
+    assert mesh.color_attributes.active_color.name == "artdef_links"
     # ... and survive save + reload
     path = str(tmp_path / "quality.blend")
     bpy.ops.wm.save_as_mainfile(filepath=path)
