@@ -92,7 +92,21 @@ def eps_table(rows) -> str:
 
 
 # ----------------------------------------------------------------------------- (b)
-def run_case(target: int, n_fields: int, strategy: str, weights: str | None) -> dict:
+def dembones_case(scan, bones: int) -> dict:
+    """py-dem-bones' whole decomposition of the same scan (issue 6 asks for the time ratio)."""
+    from py_dem_bones.portable import solve_skinning
+    x0 = scan.vertices
+    X = x0[None] + scan.displacements
+    t0 = time.perf_counter()
+    out = solve_skinning(x0, X, bones, faces=scan.faces, max_influences=4, iterations=30)
+    secs = time.perf_counter() - t0
+    W, M = out.weights, out.transforms
+    Xhat = np.einsum("bn,pbij,nj->pni", W, M[:, :, :3, :3], x0) + np.einsum("bn,pbi->pni", W, M[:, :, :3, 3])
+    err = 100 * np.linalg.norm(X - Xhat) / np.linalg.norm(X - X.mean(axis=0))
+    return dict(db_s=secs, db_kg=float(err), db_bones=int(W.shape[0]))
+
+
+def run_case(target: int, n_fields: int, strategy: str, weights: str | None, dembones: bool = False) -> dict:
     """One end-to-end fit in this process (called in a fresh subprocess by the driver)."""
     t0 = time.perf_counter()
     scan, truth = branching_scan(target, n_fields=n_fields, seed=7)
@@ -104,12 +118,15 @@ def run_case(target: int, n_fields: int, strategy: str, weights: str | None) -> 
     res = F.fit(scan, truth["n_links"], **kw)
     peak = _status_kb("VmHWM")
     ari = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
-    return dict(T=scan.n_faces, N=scan.n_vertices, P=n_fields, generate_s=t_gen, timings=res.timings,
-                peak_mb=peak / 1024, rss_before_mb=rss0 / 1024, ari=ari, links=res.n_links,
-                kg=res.articulation_error_percent, weights=weights or "default")
+    out = dict(T=scan.n_faces, N=scan.n_vertices, P=n_fields, generate_s=t_gen, timings=res.timings,
+               peak_mb=peak / 1024, rss_before_mb=rss0 / 1024, ari=ari, links=res.n_links,
+               kg=res.articulation_error_percent, weights=weights or "default")
+    if dembones:  # after the fit's peak memory was read
+        out.update(dembones_case(scan, truth["n_links"]))
+    return out
 
 
-def bench_fit(sizes, fields, repeats: int, strategy: str, weights: str | None, big: int):
+def bench_fit(sizes, fields, repeats: int, strategy: str, weights: str | None, big: int, dembones: bool = False):
     rows = []
     for target in sizes:
         for P in fields:
@@ -119,6 +136,8 @@ def bench_fit(sizes, fields, repeats: int, strategy: str, weights: str | None, b
                 cmd = [sys.executable, os.path.abspath(__file__), "--case", str(target), str(P), "--strategy", strategy]
                 if weights:
                     cmd += ["--weights", weights]
+                if dembones:
+                    cmd += ["--dembones"]
                 cp = subprocess.run(cmd, capture_output=True, text=True)
                 if cp.returncode != 0:
                     print(f"  {target}×{P}: FAILED\n{cp.stderr[-2000:]}", flush=True)
@@ -128,11 +147,15 @@ def bench_fit(sizes, fields, repeats: int, strategy: str, weights: str | None, b
                 continue
             stages = {k: statistics.median(r["timings"][k] for r in runs) for k in runs[0]["timings"]}
             row = dict(runs[0], timings=stages, peak_mb=max(r["peak_mb"] for r in runs), repeats=len(runs))
+            if "db_s" in runs[0]:
+                row["db_s"] = statistics.median(r["db_s"] for r in runs)
             rows.append(row)
             st = ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
             print(f"  T={row['T']:6d} P={P:3d} (median of {len(runs)}): {st} s; peak RSS {row['peak_mb']:.0f} MB "
                   f"(+{row['peak_mb'] - row['rss_before_mb']:.0f} over the loaded scan); ARI {row['ari']:.4f}; "
-                  f"articulation error {row['kg']:.2f}%", flush=True)
+                  f"articulation error {row['kg']:.2f}%"
+                  + (f"; Dem Bones {row['db_s']:.2f} s ({row['db_kg']:.2f}%), artdef/Dem Bones time "
+                     f"{stages['total'] / row['db_s']:.2f}" if "db_s" in row else ""), flush=True)
     return rows
 
 
@@ -140,14 +163,18 @@ def fit_table(rows) -> str:
     names = ["features", "cluster", "merge", "joints", "model"]
     extra = sorted({k for r in rows for k in r["timings"]} - set(names) - {"total"})
     cols = names + extra
+    db = any("db_s" in r for r in rows)
     out = ["| triangles | fields | " + " | ".join(f"{c} (s)" for c in cols) +
-           " | total (s) | peak RSS (MB) | Δ RSS in fit (MB) | ARI | articulation error (%) | runs |",
-           "|---:|---:|" + "---:|" * (len(cols) + 6)]
+           " | total (s) | peak RSS (MB) | Δ RSS in fit (MB) | ARI | articulation error (%) | runs |"
+           + (" Dem Bones (s) | Dem Bones error (%) | artdef / Dem Bones time |" if db else ""),
+           "|---:|---:|" + "---:|" * (len(cols) + 6 + (3 if db else 0))]
     for r in rows:
         t = r["timings"]
         out.append(f"| {r['T']:,} | {r['P']} | " + " | ".join(f"{t.get(c, 0.0):.2f}" for c in cols) +
                    f" | {t['total']:.2f} | {r['peak_mb']:.0f} | {r['peak_mb'] - r['rss_before_mb']:.0f} | "
-                   f"{r['ari']:.4f} | {r['kg']:.2f} | {r['repeats']} |")
+                   f"{r['ari']:.4f} | {r['kg']:.2f} | {r['repeats']} |"
+                   + (f" {r['db_s']:.2f} | {r['db_kg']:.2f} | {t['total'] / r['db_s']:.2f} |" if "db_s" in r else
+                      (" — | — | — |" if db else "")))
     return "\n".join(out)
 
 
@@ -172,13 +199,15 @@ def main(argv=None):
     ap.add_argument("--big", type=int, default=10000, help="fits of at least this many triangles run once")
     ap.add_argument("--strategy", default="auto", help="fit strategy (auto|summed|paper)")
     ap.add_argument("--weights", default=None, help="fit weights= option, when the core has it (e.g. refined)")
+    ap.add_argument("--dembones", action="store_true",
+                    help="also time py-dem-bones (11 bones, 4 influences, 30 iterations) on each scan and print the ratio")
     ap.add_argument("--skip-eps", action="store_true")
     ap.add_argument("--skip-fit", action="store_true")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_core.md"))
     ap.add_argument("--case", nargs=2, type=int, metavar=("TRIANGLES", "FIELDS"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.case:
-        print(json.dumps(run_case(a.case[0], a.case[1], a.strategy, a.weights)))
+        print(json.dumps(run_case(a.case[0], a.case[1], a.strategy, a.weights, a.dembones)))
         return
     if a.weights and "weights" not in inspect.signature(F.fit).parameters:
         print(f"note: this core's fit() has no weights= option; ignoring --weights {a.weights}")
@@ -195,7 +224,13 @@ def main(argv=None):
         print(eps_table(rows))
     if not a.skip_fit:
         print(f"(b) end-to-end fit, 11 links, strategy {a.strategy}, a fresh process per case:", flush=True)
-        rows = bench_fit(sizes, fields, a.repeats, a.strategy, a.weights, a.big)
+        if a.dembones:
+            try:
+                import py_dem_bones  # noqa: F401
+            except Exception as exc:  # noqa: BLE001
+                print(f"note: py-dem-bones does not import ({type(exc).__name__}: {exc}); no Dem Bones times")
+                a.dembones = False
+        rows = bench_fit(sizes, fields, a.repeats, a.strategy, a.weights, a.big, a.dembones)
         md += [f"## End-to-end fit (generated branching object, 11 links, strategy {a.strategy}"
                + (f", weights {a.weights}" if a.weights else "") + ")", "", fit_table(rows), ""]
         print(fit_table(rows))
