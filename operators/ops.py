@@ -1,19 +1,30 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """ArtDef operators (public scripting API: ``bpy.ops.artdef.*``)."""
 
+import inspect
 import threading
 import time
 import traceback
 
 import bpy
 import numpy as np
-from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
 from . import fitquality, io, rig
-from .props import MODE_ITEMS, MOTION_ITEMS
+from .props import MODE_ITEMS, MOTION_ITEMS, SKIN_ITEMS
+
+try:  # automatic link count (issue 5), in cores that have it
+    from ..artdef_addon import linkcount as _linkcount
+except ImportError:
+    _linkcount = None
+
+#: The core's ``fit()`` takes ``skin='seam'|'refined'`` (refined skin weights, issue 5).
+HAS_SKIN = "skin" in inspect.signature(_fit.fit).parameters
+#: The core can choose the link count (``linkcount.choose_links``).
+HAS_AUTO_LINKS = _linkcount is not None and hasattr(_linkcount, "choose_links")
 
 #: Extra cancel checks consulted by every fit's progress callback:
 #: ``hook(stage, fraction) -> bool`` (True cancels).  For scripts and tests;
@@ -184,9 +195,13 @@ class ARTDEF_OT_fields_from_shape_keys(bpy.types.Operator):
 class _FitJob:
     """One fit: the core runs here (possibly in a worker thread); no bpy access."""
 
-    def __init__(self, scan, links, mode, motion, p_max, segmenter=None, load_index=0):
+    def __init__(self, scan, links, mode, motion, p_max, segmenter=None, load_index=0,
+                 skin=None, max_links=None):
         self.scan, self.links, self.mode, self.motion, self.p_max = scan, links, mode, motion, p_max
         self.load_index = load_index
+        self.skin = skin                # 'seam' | 'refined' | None: the core's default
+        self.max_links = max_links      # not None: choose the link count, up to this
+        self.link_reason = ""
         self.segmenter = segmenter  # cached one (same scan), or None: made in run()
         self.model = None            # the result whose rig is built (pseudo: one load point's)
         self.vertex_residual = None  # (N,) articulation residual of ``model``
@@ -213,8 +228,14 @@ class _FitJob:
         try:
             if self.segmenter is None:
                 self.segmenter = _fit.Segmenter(self.scan, callback)
+            if self.max_links is not None:
+                self.segmenter.progress = callback
+                choice = _linkcount.choose_links(self.segmenter, self.max_links, progress=callback)
+                self.links, self.link_reason = int(choice.links), str(choice.reason)
+            extra = {} if self.skin is None else {"skin": self.skin}
             self.result = _fit.fit(self.scan, self.links, mode=self.mode, motion=self.motion,
-                                   p_max=self.p_max, progress=callback, segmenter=self.segmenter)
+                                   p_max=self.p_max, progress=callback, segmenter=self.segmenter,
+                                   **extra)
             self._quality()
         except BaseException as err:  # reported on the main thread
             self.error = err
@@ -263,6 +284,16 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                                   description="Tracked scans: the replay action keys field p at "
                                               "frame (p+1) x this and the rest pose at frame 0; "
                                               "the scene's frame range is set to cover it")
+    auto_links: BoolProperty(name="Auto Links", default=False,
+                             description="Choose the number of links from the data (where the "
+                                         "articulation error stops dropping), up to Max Links; "
+                                         "the reason is reported. Turn off to set Links yourself")
+    max_links: IntProperty(name="Max Links", default=30, min=1, soft_max=64,
+                           description="Auto Links: the largest link count tried")
+    skin: EnumProperty(name="Skin", items=SKIN_ITEMS, default='AUTO',
+                       description="Skin weights: seam-blended, or refined per vertex by least "
+                                   "squares over all fields (Auto: refined for tracked scans, "
+                                   "seam for Green's scans)")
 
     _job = None
     _timer = None
@@ -274,8 +305,12 @@ class ARTDEF_OT_fit(bpy.types.Operator):
     # -- settings: explicit operator arguments win, else the object's settings
     def _settings(self, obj):
         st = obj.artdef
-        for name in ("links", "mode", "motion", "p_max", "load_index", "frames_per_field"):
-            if not self.properties.is_property_set(name):
+        props = self.properties
+        if props.is_property_set("links") and not props.is_property_set("auto_links"):
+            self.auto_links = False  # fit(links=L) means L links
+        for name in ("links", "mode", "motion", "p_max", "load_index", "frames_per_field",
+                     "auto_links", "max_links", "skin"):
+            if not props.is_property_set(name):
                 setattr(self, name, getattr(st, name))
 
     def _prepare(self, context):
@@ -299,9 +334,18 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                 self.report({'ERROR'}, f"Load Index {self.load_index} is out of range: the scan has "
                                        f"{len(scan.load_vertices)} load points")
                 return None
+        if self.skin != 'AUTO' and not HAS_SKIN:
+            self.report({'ERROR'}, "This ArtDef core has no skin option: use Skin 'Auto'")
+            return None
+        if self.auto_links and not HAS_AUTO_LINKS:
+            self.report({'ERROR'}, "This ArtDef core cannot choose the link count: "
+                                   "turn Auto Links off")
+            return None
         job = _FitJob(scan, self.links, self.mode.lower(), self.motion.lower(),
                       None if self.p_max == 0.0 else float(self.p_max),
-                      _cached_segmenter(obj.name, stored.fingerprint), self.load_index)
+                      _cached_segmenter(obj.name, stored.fingerprint), self.load_index,
+                      skin=None if self.skin == 'AUTO' else self.skin.lower(),
+                      max_links=self.max_links if self.auto_links else None)
         job.obj_name = obj.name
         job.tri_polygons = stored.tri_polygons
         job.fingerprint = stored.fingerprint
@@ -325,6 +369,9 @@ class ARTDEF_OT_fit(bpy.types.Operator):
             self.report({'ERROR'}, "The mesh changed while fitting; nothing was created")
             return {'CANCELLED'}
         _cache_segmenter(job.obj_name, job.fingerprint, job.segmenter)
+        self.links = job.links  # chosen by Auto Links, or as given
+        if job.link_reason:
+            self.report({'INFO'}, job.link_reason)
         model = job.model
         load_names = None
         if self.mode == 'PSEUDO':
@@ -388,10 +435,13 @@ class ARTDEF_OT_fit(bpy.types.Operator):
             st.fit_summary = ""
         if st.fit_replay:
             st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
-        # Remember the settings that made this rig.
+        st.fit_link_reason = job.link_reason
+        st.fit_skin = str(getattr(model, "skin", "") or "")
+        # Remember the settings that made this rig (Links: the count used, also when chosen).
         st.links, st.mode, st.motion = self.links, self.mode, self.motion
         st.p_max, st.load_index = self.p_max, self.load_index
         st.frames_per_field = self.frames_per_field
+        st.auto_links, st.max_links, st.skin = self.auto_links, self.max_links, self.skin
 
     # -- synchronous path (scripts, background mode) -------------------------
     def execute(self, context):

@@ -16,6 +16,12 @@ MODE_ITEMS = (
     ('PSEUDO', "Pseudo", "Fit each load point separately and build the rig of one load "
                          "point's model (Load Index)"),
 )
+SKIN_ITEMS = (
+    ('AUTO', "Auto", "Refined for tracked scans, seam-blended for Green's scans"),
+    ('SEAM', "Seam", "Weights blended across the seams between links"),
+    ('REFINED', "Refined", "Per-vertex convex weights (at most 4 nearby links) solved by least "
+                           "squares over all fields: reproduces the capture closely with few bones"),
+)
 MOTION_ITEMS = (
     ('ROBUST', "Robust", "Robust rigid-motion estimate per link (down-weights outliers)"),
     ('LSQ', "Least Squares", "Plain least-squares rigid motion per link"),
@@ -60,6 +66,14 @@ class ARTDEF_PG_object(PropertyGroup):
     load_index: IntProperty(
         name="Load Index", default=0, min=0,
         description="Pseudo mode: which load point's model becomes the rig")
+    auto_links: BoolProperty(
+        name="Auto Links", default=False,
+        description="Choose the number of links from the data (where the articulation error "
+                    "stops dropping), up to Max Links; turn off to set Links yourself")
+    max_links: IntProperty(name="Max Links", default=30, min=1, soft_max=64,
+                           description="Auto Links: the largest link count tried")
+    skin: EnumProperty(name="Skin", items=SKIN_ITEMS, default='AUTO',
+                       description="How the skin weights are made")
     frames_per_field: IntProperty(
         name="Frames per Field", default=10, min=1, soft_max=100,
         description="Tracked scans: the replay action keys field p at frame "
@@ -113,6 +127,8 @@ class ARTDEF_PG_object(PropertyGroup):
                                 description="Scale of the scan, to read the errors against")
     fit_replay: StringProperty(description="Frames of the replay action (tracked scans)")
     fit_link_stats: CollectionProperty(type=ARTDEF_PG_link_stats)
+    fit_link_reason: StringProperty(description="Why Auto Links chose this link count")
+    fit_skin: StringProperty(name="Skin", description="Skin weights of the fit")
     show_link_stats: BoolProperty(name="Per Link", default=False,
                                   description="Show the fit quality of every link")
 

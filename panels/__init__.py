@@ -1,9 +1,11 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """3D View sidebar tab "ArtDef": active scan, fit settings, actions, last fit."""
 
+import textwrap
+
 import bpy
 
-from ..operators import io, rig
+from ..operators import io, ops, rig
 
 
 class ARTDEF_PT_main(bpy.types.Panel):
@@ -51,13 +53,20 @@ class ARTDEF_PT_main(bpy.types.Panel):
         col = box.column()
         col.use_property_split = True
         col.use_property_decorate = False
-        col.prop(st, "links")
+        if ops.HAS_AUTO_LINKS:
+            col.prop(st, "auto_links")
+        if st.auto_links and ops.HAS_AUTO_LINKS:
+            col.prop(st, "max_links")
+        else:
+            col.prop(st, "links")
         col.prop(st, "mode")
         if st.mode == 'PSEUDO':
             col.prop(st, "load_index")
         col.prop(st, "motion")
         col.prop(st, "p_max")
         tracked = io.has_scan(mesh) and io.scan_info(mesh)["kind"] == "tracked"
+        if ops.HAS_SKIN:
+            col.prop(st, "skin")
         if tracked:
             col.prop(st, "frames_per_field")
         row = box.row(align=True)
@@ -66,6 +75,10 @@ class ARTDEF_PT_main(bpy.types.Panel):
         op.links, op.mode, op.motion = st.links, st.mode, st.motion
         op.p_max, op.load_index = st.p_max, st.load_index
         op.frames_per_field = st.frames_per_field
+        op.auto_links = st.auto_links and ops.HAS_AUTO_LINKS
+        op.max_links = st.max_links
+        if ops.HAS_SKIN:
+            op.skin = st.skin
         row = box.row(align=True)
         row.operator("artdef.preview_links", icon='COLOR').links = st.links
         row.operator("artdef.clear_rig", icon='TRASH')
@@ -77,7 +90,11 @@ class ARTDEF_PT_main(bpy.types.Panel):
             mode = st.fit_mode.title()
             if st.fit_load_index >= 0:
                 mode += f" (load {st.fit_load_index})"
-            col.label(text=f"Links: {st.fit_links}   {mode}, {st.fit_motion.lower()}")
+            col.label(text=f"Links: {st.fit_links}   {mode}, {st.fit_motion.lower()}"
+                           + (f", {st.fit_skin} skin" if st.fit_skin else ""))
+            if st.fit_link_reason:
+                for line in textwrap.wrap(st.fit_link_reason, 44):
+                    col.label(text=line)
             if st.fit_p_max > 0:
                 col.label(text=f"Hardening p_max: {st.fit_p_max:g}")
             col.label(text=f"Articulation error: {st.fit_articulation_percent:.2f}%")

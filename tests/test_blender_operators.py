@@ -1156,3 +1156,45 @@ def test_new_sources_undo(clean_scene, tube_poses, tmp_path):
     assert bpy.ops.ed.undo() == {'FINISHED'}
     assert bpy.ops.ed.undo() == {'FINISHED'}
     assert len(bpy.data.objects) == 0
+
+
+# --------------------------------------------------------------------------
+# core options: automatic link count, skin weights
+# --------------------------------------------------------------------------
+
+def test_fit_skin_option(clean_scene, pkg, sample_files):
+    if not pkg.ops.HAS_SKIN:
+        pytest.skip("this core has no skin option")
+    ref = pkg.scan.load_scan(sample_files["rod"])
+    obj = import_scan(sample_files["rod"])
+    props = bpy.ops.artdef.fit.get_rna_type().properties
+    assert props["skin"].default == 'AUTO' and props["skin"].description
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}       # tracked: refined by default
+    assert pkg.ops.last_result(obj).skin == "refined" and obj.artdef.fit_skin == "refined"
+    _, result = check_rig(pkg, obj, 3, ref.n_fields)         # groups hold the refined weights
+    assert np.count_nonzero(result.weights > 0, axis=1).max() <= 4
+    assert bpy.ops.artdef.fit(links=3, skin='SEAM') == {'FINISHED'}
+    assert pkg.ops.last_result(obj).skin == "seam" and obj.artdef.skin == 'SEAM'
+    check_rig(pkg, obj, 3, ref.n_fields)
+    obj = import_scan(sample_files["greens_rod"])
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}       # Green's: seam by default
+    assert pkg.ops.last_result(obj).skin == "seam"
+
+
+def test_fit_auto_links(clean_scene, pkg, sample_files):
+    if not pkg.ops.HAS_AUTO_LINKS:
+        pytest.skip("this core cannot choose the link count")
+    obj = import_scan(sample_files["rod"])
+    assert bpy.ops.artdef.fit(auto_links=True, max_links=6) == {'FINISHED'}
+    st = obj.artdef
+    result = pkg.ops.last_result(obj)
+    assert st.fit_link_reason.startswith(f"links auto: chose {result.n_links}")
+    assert result.n_links == 3  # the rod sample's true link count
+    assert st.links == st.fit_links == 3 and st.auto_links and st.max_links == 6
+    assert len(st.rig.data.bones) == 3
+    labels = [e[1] for e in draw_panel() if e[0] == "label"]
+    assert any(l.startswith("links auto: chose 3") for l in labels)
+    assert ("prop", "max_links") in draw_panel()
+    # an explicit link count overrides the object's Auto Links setting
+    assert bpy.ops.artdef.fit(links=2) == {'FINISHED'}
+    assert pkg.ops.last_result(obj).n_links == 2 and not st.auto_links and st.fit_link_reason == ""
