@@ -28,6 +28,12 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--p-max", type=float, default=None,
                    help="strain hardening limit (> 1, in probe loads); off by default")
     f.add_argument("--max-links", type=int, default=30, help="upper bound for --links auto")
+    f.add_argument("--strategy", choices=("auto", "summed", "paper"), default="auto",
+                   help="how fields are combined: the paper's per-field trees with split-and-merge, "
+                        "or one tree over the summed distances (auto: paper for Green's scans)")
+    f.add_argument("--skin", choices=("auto", "seam", "refined"), default="auto",
+                   help="skin weights: seam blend (paper) or refined by least squares "
+                        "(auto: refined for tracked scans)")
     f.add_argument("-o", "--output", help="result .npz")
     f.add_argument("--blend", help="also build the rig in Blender and save this .blend (needs bpy)")
     f.add_argument("--glb", help="also export the rig as glTF binary (needs bpy)")
@@ -93,6 +99,12 @@ def _cmd_fit(a) -> int:
     for path in (a.output, a.blend, a.glb, a.png):
         if path and os.path.isdir(path):
             raise _BadInput(f"output path is a directory: {path}")
+    if a.blend or a.glb or a.png:
+        from . import headless
+        try:
+            headless.require_bpy()
+        except RuntimeError as exc:
+            raise _BadInput(str(exc)) from None
     try:
         sc = S.load_scan(a.scan)
     except S.ScanError as exc:
@@ -102,7 +114,7 @@ def _cmd_fit(a) -> int:
     try:
         if auto:
             from .linkcount import choose_links
-            seg = F.Segmenter(sc)
+            seg = F.Segmenter(sc, strategy=a.strategy)
             choice = choose_links(seg, max_links=a.max_links)
             links = choice.links
         else:
@@ -111,7 +123,8 @@ def _cmd_fit(a) -> int:
             except ValueError:
                 raise _BadInput(f"--links must be a whole number or 'auto', got {a.links!r}") from None
             seg = None
-        result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg)
+        result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
+                       strategy=a.strategy, skin=a.skin)
     except S.ScanError as exc:
         raise _BadInput(str(exc)) from None
     result.timings = {"load": t_load, **result.timings}

@@ -21,11 +21,12 @@ import numpy as np
 from . import clustering, joints as _joints, merge as _merge, model as _model
 from .metric import field_features
 from .scan import Scan, ScanError, validate_scan
-from .skinning import blend_weights
+from .skinning import blend_weights, refined_weights
 
 MODES = ("global", "pseudo")
 MOTIONS = ("robust", "lsq")
 STRATEGIES = ("summed", "paper")  # "auto": paper for Green's scans, summed for tracked ones
+SKINS = ("seam", "refined")        # "auto": refined for tracked scans, seam for Green's scans
 
 
 class FitCancelled(Exception):
@@ -58,6 +59,7 @@ class FitResult:
     p_max: float | None = None
     mode: str = "global"
     motion: str = "robust"
+    skin: str = "seam"
     timings: dict = dataclasses.field(default_factory=dict)
     pseudo: list | None = None
 
@@ -71,7 +73,7 @@ class FitResult:
         return np.concatenate([self.angles, self.locations], axis=-1)
 
     def summary(self) -> str:
-        lines = [f"links: {self.n_links}  mode: {self.mode}  motion: {self.motion}"]
+        lines = [f"links: {self.n_links}  mode: {self.mode}  motion: {self.motion}  skin: {self.skin}"]
         for l in range(self.n_links):
             j = self.joints[l]
             where = "free root" if np.isnan(j).any() else "joint (" + ", ".join(f"{v:.4f}" for v in j) + ")"
@@ -119,6 +121,7 @@ class Segmenter:
             strategy = "paper" if scan.kind == "greens" else "summed"
         self.refine = refine_seams
         self.strategy = strategy
+        self.overcut = 1.5
         self.scan = scan
         self.progress = progress
         T = scan.n_faces
@@ -202,7 +205,10 @@ class Segmenter:
         if self.strategy == "summed":
             Z = self.summed_tree(all_fields)
             t0 = time.perf_counter()
-            init = clustering.split(clustering.cut(Z, n, k)[None], self.adjacency)
+            # over-cut, so that stray small clusters at the top of the tree are absorbed by the
+            # size-weighted merge instead of costing a link
+            k_cut = min(n, int(np.ceil(self.overcut * k)))
+            init = clustering.split(clustering.cut(Z, n, k_cut)[None], self.adjacency)
             return self._finish(init, all_fields, k, t0)
         self._ensure_trees(all_fields)
         t0 = time.perf_counter()
@@ -223,11 +229,15 @@ class Segmenter:
 
     def _finish(self, init, all_fields, k, t0):
         labels, medoids, sums = self._merge(init, all_fields, k, "merge")
+        feats = [self.features[p] for p in all_fields]
+        medoids = _merge.link_medoids(feats, self.weights[all_fields], labels, medoids.shape[0])
         if self.refine:
             R = np.stack([self.features[p].R[medoids[:, i]] for i, p in enumerate(all_fields)])
             t = np.stack([self.features[p].t[medoids[:, i]] for i, p in enumerate(all_fields)])
             labels = _merge.refine_seams(self.scan.vertices, self.scan.fields()[all_fields], self.faces,
-                                         R, t, self.weights[all_fields], labels, self.adjacency)
+                                         R, t, self.weights[all_fields], labels, self.adjacency,
+                                         fixed=np.unique(medoids))
+            medoids = _merge.link_medoids(feats, self.weights[all_fields], labels, medoids.shape[0])
         self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0
         return labels, medoids, all_fields
 
@@ -286,7 +296,7 @@ def _lsq_motions(x0, fields, faces, labels, L):
     return R, t
 
 
-def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion, field_idx):
+def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion, field_idx, skin="seam"):
     """Stages 4–5 for the fields ``field_idx`` of ``scan``; returns a FitResult."""
     x0 = scan.vertices
     faces = scan.faces
@@ -381,6 +391,8 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     params = _model.params_from_motions(parents, heads, frames, grounded, R, t)
     weights = blend_weights(x0, faces, labels, L)
     Rf, tf = _model.forward_kinematics(parents, heads, frames, params)
+    if skin == "refined":
+        weights = refined_weights(x0, fields, faces, labels, Rf, tf, weights)
     residual = np.zeros((P, N, 3))
     art_err = np.zeros(P)
     tot_err = np.zeros(P)
@@ -453,11 +465,15 @@ def _bones(x0, faces, labels, parents, joint, centroid, diag):
 
 
 def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_max=None,
-        progress=None, segmenter: Segmenter | None = None, strategy: str = "auto") -> FitResult:
+        progress=None, segmenter: Segmenter | None = None, strategy: str = "auto",
+        skin: str = "auto") -> FitResult:
     """Fit an articulated deformable model to ``scan`` with ``links`` links (paper §5–§7).
 
     ``strategy`` chooses how fields are combined (see :class:`Segmenter`); it is ignored when a
-    ready ``segmenter`` is passed.
+    ready ``segmenter`` is passed. ``skin`` is ``"seam"`` (the paper's linear blend across each
+    seam's one-ring) or ``"refined"`` (per-vertex convex weights, at most 4 influences, fitted by
+    least squares over all fields to the rig's link motions); ``"auto"`` refines for tracked
+    scans and keeps seam weights for Green's scans.
     """
     if mode not in MODES:
         raise ScanError(f"mode must be one of {MODES}, got {mode!r}")
@@ -465,6 +481,8 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
         raise ScanError(f"motion must be one of {MOTIONS}, got {motion!r}")
     if p_max is not None and not (np.isfinite(p_max) and p_max > 1):
         raise ScanError(f"p_max must be a number greater than 1 (or off), got {p_max}")
+    if skin not in SKINS + ("auto",):
+        raise ScanError(f"skin must be one of {SKINS + ('auto',)}, got {skin!r}")
     if mode == "pseudo" and scan.greens is None:
         raise ScanError("pseudo-articulation needs a Green's-matrix scan (one model per load column)")
     try:
@@ -476,9 +494,12 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     seg.progress = progress
     scan = seg.scan
     seg._check_k(links)
+    if skin == "auto":
+        skin = "seam" if scan.kind == "greens" else "refined"
     labels, medoids, used = seg.segment(links)
     _report(progress, "joints", 0.0)
-    result = _articulate(scan, seg, labels, medoids, used, motion, list(range(scan.n_fields)))
+    result = _articulate(scan, seg, labels, medoids, used, motion, list(range(scan.n_fields)), skin)
+    result.skin = skin
     result.mode = mode
     result.p_max = p_max
     if mode == "pseudo":
@@ -486,7 +507,7 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
         for k, g in enumerate(seg.groups):
             _report(progress, "pseudo", k / len(seg.groups))
             lab, med, used_k = seg.segment(links, fields=g)
-            sub = _articulate(scan, seg, lab, med, used_k, motion, g)
+            sub = _articulate(scan, seg, lab, med, used_k, motion, g, skin)
             sub.mode = "pseudo"
             sub.p_max = p_max
             result.pseudo.append(sub)
@@ -511,7 +532,7 @@ def save_result(path, result: FitResult) -> None:
                articulation_error_percent=np.float64(result.articulation_error_percent),
                probe_load=np.float64(result.probe_load),
                p_max=np.float64(np.nan if result.p_max is None else result.p_max),
-               mode=np.array(result.mode), motion=np.array(result.motion),
+               mode=np.array(result.mode), motion=np.array(result.motion), skin=np.array(result.skin),
                timing_names=np.array(list(result.timings.keys()), dtype=str),
                timing_seconds=np.array(list(result.timings.values()), dtype=np.float64))
     if result.kappa is not None:
@@ -539,6 +560,7 @@ def load_result(path) -> FitResult:
         r.p_max = None if np.isnan(pm) else pm
         r.mode = str(d["mode"])
         r.motion = str(d["motion"])
+        r.skin = str(d["skin"]) if "skin" in d else "seam"
         if prefix + "kappa" in d:
             r.kappa = d[prefix + "kappa"]
             r.load_vertices = d[prefix + "load_vertices"]

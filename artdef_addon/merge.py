@@ -122,7 +122,7 @@ def _lambda(D: np.ndarray, size: np.ndarray) -> np.ndarray:
 
 def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.ndarray, t: np.ndarray,
                  weights: np.ndarray, labels: np.ndarray, adjacency: np.ndarray,
-                 iterations: int = 10, margin: float = 1.0 + 1e-9) -> np.ndarray:
+                 iterations: int = 10, margin: float = 1.0 + 1e-9, fixed=None) -> np.ndarray:
     """Give each seam triangle to the side of the seam that holds most of its skin weight.
 
     A triangle on a linearly blended seam moves in between its neighbours, so the clustering
@@ -133,7 +133,8 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
     over its three vertices — the definition of a face's true link in rigged data. A triangle
     moves only when the new side holds ``margin`` times the weight of its current side (so
     smoothly blended regions, where the medoid motions are themselves blended, stay as the
-    clustering put them). Iterated until no seam moves. An addition to the paper (README, "deviations").
+    clustering put them). Triangles in ``fixed`` (the links' medoids) never move, so no link
+    empties. Iterated until no seam moves. An addition to the paper (README, "deviations").
     """
     labels = labels.copy()
     k = R.shape[1]
@@ -158,7 +159,44 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
         score = w.sum(axis=2)
         best = score.argmax(axis=0)
         change = score[best, cols] > score[labels, cols] * margin
+        if fixed is not None:
+            change[fixed] = False
         if not change.any():
             break
         labels[change] = best[change]
     return labels
+
+
+def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.ndarray, k: int,
+                 sample: int | None = MEDOID_SAMPLE) -> np.ndarray:
+    """The motion centroid of every link in every field, with a 50% breakdown point.
+
+    m_l^p = argmin_{i∈l} median_{j∈l} ε_p(i, j): the member whose motion agrees exactly with at
+    least half of the link. On a link with a rigid core larger than its blended seams this is a
+    core triangle, so the link's robust motion is exact however wide the blends are (the
+    plain sum of §5.2 drifts toward the seams once they are about a third of the link). Used
+    for the final link motions; the merge keeps the sum, which it can update incrementally.
+    Returns (k, P) triangle indices (into the clustered triangles).
+    """
+    from .metric import _subsample
+    P = len(features)
+    out = np.zeros((k, P), dtype=np.int64)
+    groups = _groups(labels, k)
+    for l, m in enumerate(groups):
+        ref = _subsample(m, sample)
+        for p, f in enumerate(features):
+            if len(m) == 1:
+                out[l, p] = m[0]
+                continue
+            med = np.empty(len(m))
+            step = max(1, 2_000_000 // max(len(ref), 1))
+            for i0 in range(0, len(m), step):
+                med[i0:i0 + step] = np.median(distance_block(f, m[i0:i0 + step], ref), axis=1)
+            # ties (a whole rigid core at zero) go to the smallest sum, i.e. deepest in the core
+            cand = np.flatnonzero(med <= med.min() + 1e-12 * max(med.max(), 1e-300))
+            if len(cand) > 1:
+                sums = distance_block(f, m[cand], ref).sum(axis=1)
+                out[l, p] = m[cand[np.argmin(sums)]]
+            else:
+                out[l, p] = m[cand[0]]
+    return out

@@ -1,7 +1,8 @@
 """The articulated deformable model (paper Eqs. 1–3, §7; METHOD §7.3, §8–§10).
 
 Pose parameters are per link six numbers: the bone-local Euler angles in Blender's 'XYZ'
-order (R = R_z R_y R_x) and a bone-local location. A link's bone has its head h at the joint
+order (R = R_z R_y R_x) and a bone-local location (the translation the fitted joint does not
+explain: zero for exact joints, the whole translation of a free root). A link's bone has its head h at the joint
 and rest rotation B (columns: bone X, Y, Z in world space). Forward kinematics is Blender's
 armature formula:
 
@@ -77,25 +78,29 @@ def forward_kinematics(parents, heads, frames, params) -> tuple[np.ndarray, np.n
 
 
 def params_from_motions(parents, heads, frames, grounded, R, t) -> np.ndarray:
-    """Pose parameters (..., L, 6) that reproduce link motions (R, t) as closely as the joints allow.
+    """Pose parameters (..., L, 6) that reproduce the link motions (R, t) exactly.
 
-    Relative rotation to the parent, expressed in the bone frame; locations only for roots that
-    are not attached to the world (METHOD §7.3).
+    Rotation: the relative rotation to the parent, in the bone frame, as Blender 'XYZ' Euler
+    angles (METHOD §7.3). Location: whatever translation the joint does not explain,
+    loc = Bᵀ(R_pᵀ(t_l − t_p) − h + R_rel h) — zero when the fitted joint is exact, a small
+    bone offset otherwise (and the whole translation of a free root), so the rig follows the
+    estimated link motions even where the joint fit is imperfect. ``grounded`` is accepted for
+    symmetry with the result file; a grounded root gets the same formula with the world as parent.
     """
     L = len(parents)
     Rrel = np.array(R, copy=True)
+    trel = np.array(t, copy=True)
     for l in range(L):
         p = parents[l]
         if p >= 0:
-            Rrel[..., l, :, :] = np.swapaxes(R[..., p, :, :], -1, -2) @ R[..., l, :, :]
+            Rpt = np.swapaxes(R[..., p, :, :], -1, -2)
+            Rrel[..., l, :, :] = Rpt @ R[..., l, :, :]
+            trel[..., l, :] = np.einsum("...ij,...j->...i", Rpt, t[..., l, :] - t[..., p, :])
     Rloc = np.einsum("lji,...ljk,lkm->...lim", frames, Rrel, frames)
     out = np.zeros(R.shape[:-2] + (6,))
     out[..., :3] = matrix_to_euler(Rloc)
-    for l in range(L):
-        if parents[l] < 0 and not grounded[l]:
-            h = heads[l]
-            moved = t[..., l, :] - h + np.einsum("...ij,j->...i", R[..., l, :, :], h)
-            out[..., l, 3:] = np.einsum("ji,...j->...i", frames[l], moved)
+    moved = trel - heads + np.einsum("...lij,lj->...li", Rrel, heads)
+    out[..., 3:] = np.einsum("lji,...lj->...li", frames, moved)
     return out
 
 

@@ -45,3 +45,105 @@ def blend_weights(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n
             W = A @ W
         W /= W.sum(axis=1, keepdims=True)
     return W
+
+
+def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Exact minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries.
+
+    Batched over rows (Q (N,m,m), q (N,m), m small): every support subset S of the m candidates
+    is tried at once for all rows — the equality-constrained optimum on S from its KKT system —
+    and the best feasible one is kept. The convex optimum is one of them, so this is exact
+    (2^m − 1 tiny solves per row; m ≤ 4 gives 15).
+    """
+    N, m = q.shape
+    best = np.full(N, np.inf)
+    out = np.zeros((N, m))
+    for mask in range(1, 1 << m):
+        S = [i for i in range(m) if mask >> i & 1]
+        ok = np.all(valid[:, S], axis=1)
+        if not ok.any():
+            continue
+        n = len(S)
+        K = np.zeros((N, n + 1, n + 1))
+        K[:, :n, :n] = 2 * Q[:, S][:, :, S]
+        K[:, :n, n] = 1.0
+        K[:, n, :n] = 1.0
+        rhs = np.zeros((N, n + 1))
+        rhs[:, :n] = 2 * q[:, S]
+        rhs[:, n] = 1.0
+        try:
+            sol = np.linalg.solve(K, rhs[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            sol = np.einsum("nij,nj->ni", np.linalg.pinv(K), rhs)
+        w = sol[:, :n]
+        feas = ok & np.all(w >= -1e-12, axis=1) & np.all(np.isfinite(w), axis=1)
+        if not feas.any():
+            continue
+        w = np.maximum(w, 0.0)
+        full = np.zeros((N, m))
+        full[:, S] = w
+        obj = np.einsum("na,nab,nb->n", full, Q, full) - 2 * np.einsum("na,na->n", q, full)
+        better = feas & (obj < best)
+        best[better] = obj[better]
+        out[better] = full[better]
+    return out
+
+
+def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
+                    R: np.ndarray, t: np.ndarray, seam_weights: np.ndarray, max_influences: int = 4,
+                    rings: int = 2, ground=None) -> np.ndarray:
+    """Per-vertex convex skin weights fitted by least squares over all fields (issue 5; SSDR-style).
+
+    For each vertex v, with candidate links C(v) — the links of the triangles within ``rings``
+    rings of v, at most ``max_influences`` of them, those whose own motion explains v best —
+    solve   min_w Σ_p ‖Σ_{l∈C(v)} w_l (R_l^p x0(v) + t_l^p) − x^p(v)‖²   s.t. w ≥ 0, Σ w = 1,
+    given the link motions (R, t) (P, L, 3, 3) / (P, L, 3). All vertices are solved together and
+    exactly by :func:`simplex_least_squares` on their small Gram systems (no per-vertex Python
+    loop). ``seam_weights`` (N, L) is kept where a vertex has a single candidate. Returns (N, L)
+    rows summing to 1. With ``ground`` (N,) bool, the fixed world (identity motion) is one more
+    candidate for those vertices and their ``rings`` rings, returned as column L.
+    """
+    N = vertices.shape[0]
+    if ground is not None:
+        P = R.shape[0]
+        R = np.concatenate([R, np.tile(np.eye(3), (P, 1, 1, 1))], axis=1)
+        t = np.concatenate([t, np.zeros((P, 1, 3))], axis=1)
+        seam_weights = np.concatenate([seam_weights, np.zeros((N, 1))], axis=1)
+    L = R.shape[1]
+    # candidate links: dilate the vertex-link incidence over the vertex graph
+    rows = faces.reshape(-1)
+    inc = np.asarray(coo_matrix((np.ones(rows.size), (rows, np.repeat(labels, 3))), shape=(N, L)).todense()) > 0
+    if ground is not None:
+        inc[:, L - 1] = ground
+    f = faces
+    a = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)
+    cand = inc.astype(np.float64)
+    for _ in range(max(rings - 1, 0)):
+        cand = cand + A @ cand
+    cand = cand > 0
+    # positions of every vertex under every link motion: Y (P, L, N, 3)
+    Y = np.einsum("plij,nj->plni", R, vertices) + t[:, :, None, :]
+    X = vertices[None] + fields                                       # (P, N, 3)
+    err = np.sqrt(np.einsum("plni,plni->ln", Y - X[:, None], Y - X[:, None]))  # (L, N)
+    err = np.where(cand.T, err, np.inf)
+    if L > max_influences:
+        keep = np.argsort(err, axis=0)[:max_influences]                  # (m, N)
+        mask = np.zeros((L, N), dtype=bool)
+        mask[keep, np.arange(N)[None, :]] = True
+        mask &= np.isfinite(err)
+    else:
+        mask = np.isfinite(err)
+    m = max_influences if L > max_influences else L
+    order = np.argsort(~mask, axis=0, kind="stable")[:m]                # candidate link ids (m, N)
+    valid = np.take_along_axis(mask, order, axis=0).T                   # (N, m)
+    cols = order.T                                                       # (N, m)
+    Yc = Y[:, cols, np.arange(N)[:, None], :]                           # (P, N, m, 3)
+    Q = np.einsum("pnai,pnbi->nab", Yc, Yc)
+    q = np.einsum("pnai,pni->na", Yc, X)
+    w = simplex_least_squares(Q, q, valid)
+    out = np.zeros((N, L))
+    np.put_along_axis(out, cols, w, axis=1)
+    out[out < 1e-6] = 0.0
+    return out / out.sum(axis=1, keepdims=True)

@@ -1,0 +1,78 @@
+"""Choosing the number of links from the data (``--links auto``; issue 5).
+
+The paper names the link count as its only parameter. Here it is chosen from the articulation
+error curve: for every candidate k the segmentation is re-cut from the cached tree (no new
+distances), each link moves with its robust motion, every vertex gets its best convex blend of
+nearby link motions (:func:`skinning.refined_weights`), and e(k) is the Karni–Gotsman error
+100·‖X − X̂‖/‖X − X̄‖ of that articulation. With too few links some part of the object cannot
+follow; once every articulated part has its link the curve drops to a floor (noise, local
+deformation). Where the scan has support vertices the fixed world is one more candidate motion
+(the paper's ground link). The choice is the smallest k with
+
+    log(e(k) / e_floor) ≤ τ · log(e(1) / e_floor),    e_floor = min_k e(k),
+
+i.e. k gets within a fraction τ (default 0.15) of the whole drop, on a log scale.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from . import skinning
+from .model import skin
+
+
+@dataclasses.dataclass
+class LinkChoice:
+    links: int
+    errors: np.ndarray       # e(k) for k = 1..len(errors), percent
+    tau: float
+    reason: str
+
+
+def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
+    """e(k) for k = 1..max_links (see module docstring), percent."""
+    scan = seg.scan
+    fields_all = scan.fields()
+    ground = None
+    if scan.support_vertices is not None:
+        ground = np.zeros(scan.n_vertices, dtype=bool)
+        ground[scan.support_vertices] = True
+    out = []
+    for k in range(1, max_links + 1):
+        if progress is not None and progress("links", (k - 1) / max_links):
+            from .fit import FitCancelled
+            raise FitCancelled("cancelled while choosing the link count")
+        lab, med, used = seg.segment(k)
+        labels = seg.full_labels(lab)
+        R = np.stack([seg.features[p].R[med[:, i]] for i, p in enumerate(used)])
+        t = np.stack([seg.features[p].t[med[:, i]] for i, p in enumerate(used)])
+        fields = fields_all[used]
+        X = scan.vertices[None] + fields
+        den = np.linalg.norm(X - X.mean(axis=0))
+        w0 = skinning.blend_weights(scan.vertices, scan.faces, labels, k)
+        w = skinning.refined_weights(scan.vertices, fields, scan.faces, labels, R, t, w0, ground=ground)
+        if ground is not None:  # the fixed world is one more "link" with the identity motion
+            R = np.concatenate([R, np.tile(np.eye(3), (len(used), 1, 1, 1))], axis=1)
+            t = np.concatenate([t, np.zeros((len(used), 1, 3))], axis=1)
+        err = sum(np.sum((skin(w, R[i], t[i], scan.vertices) - X[i]) ** 2) for i in range(len(used)))
+        out.append(100.0 * np.sqrt(err) / den if den > 0 else 0.0)
+    return np.array(out)
+
+
+def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None) -> LinkChoice:
+    """Pick the link count for a :class:`fit.Segmenter` (see module docstring)."""
+    max_links = int(max(1, min(max_links, len(seg.valid))))
+    e = articulation_error_curve(seg, max_links, progress=progress)
+    floor = max(float(e.min()), 1e-3)
+    top = max(float(e[0]), floor)
+    if top <= floor * 1.0001:
+        k = 1
+        why = f"one rigid motion explains every field (error {e[0]:.3g}%)"
+    else:
+        frac = np.log(np.maximum(e, floor) / floor) / np.log(top / floor)
+        k = int(np.flatnonzero(frac <= tau)[0]) + 1
+        why = (f"articulation error {e[0]:.2f}% with 1 link, {e[k - 1]:.2f}% with {k}, floor {e.min():.2f}% "
+               f"by {max_links}: {k} links reach the floor within tau={tau:g} on a log scale")
+    return LinkChoice(k, e, tau, f"links auto: chose {k}. {why}")

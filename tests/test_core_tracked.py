@@ -1,0 +1,89 @@
+"""Tracked scans (issue 5): refined weights, automatic link count, real rigs, no collapse."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+from artdef_addon import fit as F, linkcount, model, quality, samples, scan as S, skinning
+
+DATA = Path(__file__).parent / "data"
+
+
+def test_simplex_least_squares_is_exact():
+    rng = np.random.default_rng(0)
+    N, m = 40, 4
+    A = rng.normal(size=(N, 9, m))
+    b = rng.normal(size=(N, 9))
+    Q = np.einsum("nka,nkb->nab", A, A)
+    q = np.einsum("nka,nk->na", A, b)
+    valid = rng.random((N, m)) > 0.2
+    valid[:, 0] = True
+    w = skinning.simplex_least_squares(Q, q, valid)
+    assert np.allclose(w.sum(1), 1) and (w >= 0).all() and not w[~valid].any()
+    for n in range(0, N, 5):
+        idx = np.flatnonzero(valid[n])
+        res = minimize(lambda x: np.sum((A[n][:, idx] @ x - b[n]) ** 2), np.ones(len(idx)) / len(idx),
+                       bounds=[(0, 1)] * len(idx), constraints=({"type": "eq", "fun": lambda x: x.sum() - 1},),
+                       method="SLSQP", options={"ftol": 1e-14})
+        ours = np.sum((A[n] @ w[n] - b[n]) ** 2)
+        assert ours <= res.fun + 1e-9
+
+
+def test_refined_weights_reproduce_linear_blends():
+    scan, truth = samples.branching()
+    seam = F.fit(scan, 11, skin="seam")
+    refined = F.fit(scan, 11, skin="refined")
+    assert refined.skin == "refined"
+    assert refined.articulation_error_percent < 0.01 < seam.articulation_error_percent
+    assert np.allclose(refined.weights.sum(1), 1) and (refined.weights >= 0).all()
+    assert ((refined.weights > 0).sum(1) <= 4).all()
+    m = quality.match_links(refined.face_labels, truth["face_labels"])
+    assert np.abs(refined.weights - truth["weights"][:, m]).max() < 1e-6
+
+
+@pytest.mark.parametrize("name,kw,expected", [("rod", {}, 3), ("branching", {}, 11),
+                                               ("branching", dict(noise=0.02, bulges=True), 11),
+                                               ("branching", dict(disconnected=True), 11)])
+def test_auto_link_count_on_generated_samples(name, kw, expected):
+    choice = linkcount.choose_links(F.Segmenter(samples.make(name, **kw)), max_links=16)
+    assert choice.links == expected, choice.reason
+    assert f"chose {expected}" in choice.reason
+
+
+def test_auto_link_count_rigid_is_one():
+    scan = samples.make("rod")
+    from scipy.spatial.transform import Rotation
+    R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    d = np.stack([scan.vertices @ R.T + [1, 2, 3] - scan.vertices, scan.vertices @ R.T @ R.T - scan.vertices])
+    choice = linkcount.choose_links(F.Segmenter(S.Scan(scan.vertices, scan.faces, displacements=d)), 8)
+    assert choice.links == 1
+
+
+def test_never_collapses_on_random_rods():
+    found = 0
+    for seed in range(20):
+        n_fields = 3 + seed % 8
+        scan, truth = samples.rod(n_fields=n_fields, seed=100 + seed)
+        r = F.fit(scan, 3)
+        found += len(np.unique(r.face_labels)) == 3 and \
+            quality.adjusted_rand_index(r.face_labels, truth["face_labels"]) > 0.99
+    assert found == 20
+
+
+@pytest.mark.parametrize("name", ["gltf_CesiumMan", "threejs_RobotExpressive"])
+def test_real_rig_fresh_poses(name, capsys):
+    with np.load(DATA / f"{name}.npz", allow_pickle=False) as z:
+        d = {k: z[k] for k in z.files}
+    poses = samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"], d["gt_parents"], 20, seed=1)
+    scan = S.Scan(d["vertices"], d["faces"], displacements=poses)
+    L = len(np.unique(d["gt_face_labels"]))
+    r = F.fit(scan, L)
+    ari = quality.adjusted_rand_index(r.face_labels, d["gt_face_labels"])
+    diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
+    _, err = quality.true_joint_errors(r, d["gt_joints"], d["gt_parents"], d["gt_face_labels"])
+    with capsys.disabled():
+        print(f"\n{name}: ARI {ari:.3f}, joints within 2% of the diagonal: {np.mean(err / diag < 0.02):.0%} "
+              f"of {len(err)}, articulation error {r.articulation_error_percent:.2f}%")
+    assert ari >= 0.95
+    assert r.articulation_error_percent < 3.0
