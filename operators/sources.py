@@ -205,6 +205,15 @@ class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
             return False
         return True
 
+    def invoke(self, context, event):
+        props = self.properties
+        scene = context.scene
+        if not props.is_property_set("frame_start"):
+            self.frame_start = scene.frame_start
+        if not props.is_property_set("frame_end"):
+            self.frame_end = scene.frame_end
+        return context.window_manager.invoke_props_dialog(self)
+
     def execute(self, context):
         t0 = time.perf_counter()
         scene = context.scene

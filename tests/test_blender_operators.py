@@ -883,6 +883,8 @@ def test_fields_from_shape_key_animation_with_rest_frame(clean_scene, pkg):
     assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=4, rest_frame=3) == {'FINISHED'}
     new = bpy.context.active_object
     assert new.name == "blob_scan" and new.data.shape_keys is None
+    assert [k.name for k in obj.data.shape_keys.key_blocks] == ["Basis", "k0", "k1"]  # source intact
+    assert obj.data.shape_keys.animation_data.action is not None
     assert new.data["artdef_rest_frame"] == 3
     mix = {f: verts + sum(v * o for v, o in zip(vals, offsets)) for f, vals in values.items()}
     np.testing.assert_allclose(rest_positions(new), mix[3], atol=1e-6)
