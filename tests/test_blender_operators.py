@@ -862,7 +862,8 @@ def test_armature_animation_fit_reproduces_its_joints(clean_scene, pkg, blend):
     assert obj.modifiers[0].object == obj.artdef.rig and len(tube.modifiers) == 2
 
 
-def test_fields_from_shape_key_animation_with_rest_frame(clean_scene, pkg):
+def shape_key_blob():
+    """A mesh whose shape keys are animated: frames 1-4 (3 and 4 equal)."""
     verts, polys, segment = tube_geometry(rings_per_segment=2, sides=6)
     mesh = bpy.data.meshes.new("blob")
     mesh.from_pydata(verts.tolist(), [], polys)
@@ -880,6 +881,11 @@ def test_fields_from_shape_key_animation_with_rest_frame(clean_scene, pkg):
         for s, v in enumerate(vals):
             keys[f"k{s}"].value = v
             keys[f"k{s}"].keyframe_insert("value", frame=f)
+    return obj, verts, offsets, values
+
+
+def test_fields_from_shape_key_animation_with_rest_frame(clean_scene, pkg):
+    obj, verts, offsets, values = shape_key_blob()
     assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=4, rest_frame=3) == {'FINISHED'}
     new = bpy.context.active_object
     assert new.name == "blob_scan" and new.data.shape_keys is None
@@ -900,6 +906,27 @@ def test_fields_from_shape_key_animation_with_rest_frame(clean_scene, pkg):
     scan = pkg.io.read_scan(bpy.context.active_object).scan
     np.testing.assert_allclose(scan.vertices, verts, atol=1e-6)
     np.testing.assert_allclose(scan.displacements[0], offsets[0], atol=1e-6)
+
+
+def test_fields_from_alembic_cache(clean_scene, pkg, tmp_path):
+    """A Mesh Sequence Cache (Alembic) samples like the animation it was made from."""
+    obj, verts, offsets, values = shape_key_blob()
+    abc = str(tmp_path / "blob.abc")
+    assert bpy.ops.wm.alembic_export(filepath=abc, start=1, end=4, as_background_job=False) == {'FINISHED'}
+    assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=4, rest_frame=3) == {'FINISHED'}
+    want = pkg.io.read_scan(bpy.context.active_object).scan
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    assert bpy.ops.wm.alembic_import(filepath=abc, as_background_job=False) == {'FINISHED'}
+    cached = [o for o in bpy.data.objects if o.type == 'MESH']
+    assert len(cached) == 1 and [m.type for m in cached[0].modifiers] == ['MESH_SEQUENCE_CACHE']
+    bpy.context.view_layer.objects.active = cached[0]
+    assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=4, rest_frame=3) == {'FINISHED'}
+    new = bpy.context.active_object
+    assert new != cached[0] and len(new.modifiers) == 0  # the cache reader stays on the source
+    got = pkg.io.read_scan(new).scan
+    R = np.array(new.matrix_world.to_3x3())  # object space of the import may be rotated (Y-up)
+    np.testing.assert_allclose(got.vertices @ R.T, want.vertices, atol=1e-5)
+    np.testing.assert_allclose(got.displacements @ R.T, want.displacements, atol=1e-5)
 
 
 def _vertex_cutting_nodes():
