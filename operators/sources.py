@@ -139,9 +139,20 @@ def copy_without_motion(context, obj, rest, name):
     Kept: materials, UVs, vertex groups, and modifiers that change topology or
     only normals/weights.  Returns (object, names of dropped modifiers).
     """
-    src = obj.artdef
     new = obj.copy()                        # modifiers with all their settings
-    new.data = obj.data.copy()              # before touching shape keys!
+    mesh = obj.data.copy()
+    new.data = mesh                         # before touching shape keys!
+    try:
+        dropped = _strip_copy(context, obj, new, rest, name)
+    except Exception:
+        bpy.data.objects.remove(new)
+        bpy.data.meshes.remove(mesh)
+        raise
+    return new, dropped
+
+
+def _strip_copy(context, obj, new, rest, name):
+    src = obj.artdef
     new.name = name
     new.data.name = name
     new.property_unset("artdef")            # the source's fit record is not this object's
@@ -170,7 +181,7 @@ def copy_without_motion(context, obj, rest, name):
     rig.remove_residual(mesh)
     io.clear_scan(mesh)
     mesh.update()
-    return new, dropped
+    return dropped
 
 
 class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
@@ -264,7 +275,11 @@ class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
         except _scan.ScanError as err:
             self.report({'ERROR'}, f"'{obj.name}': {err}")
             return {'CANCELLED'}
-        new, dropped = copy_without_motion(context, obj, rest, f"{obj.name}_scan")
+        try:
+            new, dropped = copy_without_motion(context, obj, rest, f"{obj.name}_scan")
+        except Exception as err:
+            self.report({'ERROR'}, f"Copying '{obj.name}' failed: {err}")
+            return {'CANCELLED'}
         try:
             io.write_scan(new.data, scan)
         except Exception as err:
