@@ -18,7 +18,8 @@ import time
 
 import numpy as np
 
-from . import clustering, joints as _joints, merge as _merge, model as _model
+from . import clustering, cost as _cost, joints as _joints, merge as _merge, model as _model
+from . import patches as _patches
 from .metric import field_features
 from .scan import Scan, ScanError, validate_scan
 from .skinning import blend_weights, refined_weights
@@ -113,7 +114,8 @@ class Segmenter:
     Both end with the seam refinement of :func:`merge.refine_seams` unless ``refine_seams=False``.
     """
 
-    def __init__(self, scan: Scan, progress=None, refine_seams: bool = True, strategy: str = "auto"):
+    def __init__(self, scan: Scan, progress=None, refine_seams: bool = True, strategy: str = "auto",
+                 reduce: bool | None = None, budget: float = _cost.DEFAULT_BUDGET, max_units: int | None = None):
         if strategy not in STRATEGIES + ("auto",):
             raise ScanError(f"strategy must be one of {STRATEGIES + ('auto',)}, got {strategy!r}")
         scan = validate_scan(scan)
@@ -124,6 +126,7 @@ class Segmenter:
         self.overcut = 1.5
         self.scan = scan
         self.progress = progress
+        self.notes = []
         T = scan.n_faces
         bad = np.zeros(T, dtype=bool)
         bad[scan.degenerate_faces] = True
@@ -133,18 +136,63 @@ class Segmenter:
         self.timings = {}
         t0 = time.perf_counter()
         fields = scan.fields()
-        self.features = []
-        for p in range(scan.n_fields):
-            _report(progress, "features", p / scan.n_fields)
-            self.features.append(field_features(x0, fields[p], self.faces))
-        self.weights = _merge.field_weights(self.features)
+        self.tri_adjacency = clustering.face_adjacency(self.faces)
+        Tv = len(self.valid)
+        est = _cost.estimate(Tv, scan.n_fields, scan.n_vertices, strategy, budget)
+        self.estimate = est
+        if reduce is None:
+            reduce = est.reduced
+            if reduce:
+                self.notes.append(f"the full method needs about {_cost.full_memory(Tv, scan.n_fields, scan.n_vertices) / 2 ** 30:.1f} GB "
+                                  f"(budget {budget / 2 ** 30:.1f} GB): using the reduced method on patches")
+        self.reduced = bool(reduce)
+        if not self.reduced:
+            self.features = []
+            for p in range(scan.n_fields):
+                _report(progress, "features", p / scan.n_fields)
+                self.features.append(field_features(x0, fields[p], self.faces))
+            self.weights = _merge.field_weights(self.features)
+            self.unit_of = np.arange(Tv)
+            self.unit_tri = np.arange(Tv)
+            self.adjacency = self.tri_adjacency
+        else:
+            self._build_patches(x0, fields, max_units or _cost.reduced_units(budget))
         if scan.kind == "greens":
             self.groups = [[3 * k, 3 * k + 1, 3 * k + 2] for k in range(scan.n_loads)]
         else:
             self.groups = [[p] for p in range(scan.n_fields)]
-        self.adjacency = clustering.face_adjacency(self.faces)
         self.timings["features"] = time.perf_counter() - t0
         self._trees = {}
+
+    def _build_patches(self, x0, fields, max_units):
+        """Reduced method (see :mod:`patches`): units are patch representatives."""
+        P = self.scan.n_fields
+        Tv = len(self.valid)
+        weights = np.zeros(P)
+
+        def stream():
+            for p in range(P):
+                _report(self.progress, "features", 0.5 * p / P)
+                f = field_features(x0, fields[p], self.faces)
+                z = f.zero_distance().max()
+                weights[p] = 1.0 / z if z > 1e-300 else 0.0
+                yield weights[p], f
+
+        centroids = x0[self.faces].mean(axis=1)
+        size = max(2, int(np.ceil(4.0 * Tv / max_units)))
+        labels, reps = _patches.make_patches(stream(), Tv, self.tri_adjacency, centroids, size, max_units)
+        self.weights = weights
+        self.unit_of = labels
+        self.unit_tri = reps
+        a = labels[self.tri_adjacency]
+        a = a[a[:, 0] != a[:, 1]]
+        self.adjacency = np.unique(np.sort(a, axis=1), axis=0)
+        self.features = []
+        for p in range(P):
+            _report(self.progress, "features", 0.5 + 0.5 * p / P)
+            self.features.append(field_features(x0, fields[p], self.faces[reps]))
+        self.notes.append(f"reduced method: {len(reps)} patches of at most {size} triangles "
+                          f"(from {Tv} triangles)")
 
     def summed_tree(self, fields) -> np.ndarray:
         """Average-linkage tree of Σ_p w_p ε_p over ``fields`` (cached per field set)."""
@@ -156,7 +204,7 @@ class Segmenter:
                 _report(self.progress, "distances", i / len(fields))
                 acc = clustering.condensed_distance(self.features[p], out=acc, accumulate=self.weights[p])
             _report(self.progress, "cluster", 0.0)
-            self._trees[key] = clustering.linkage(acc, method="average") if len(self.valid) > 1 \
+            self._trees[key] = clustering.linkage(acc, method="average") if len(self.unit_tri) > 1 \
                 else np.zeros((0, 4))
             del acc
             self.timings["cluster"] = self.timings.get("cluster", 0.0) + time.perf_counter() - t0
@@ -189,6 +237,9 @@ class Segmenter:
             raise ScanError(f"the number of links must be at least 1, got {k}")
         if k > len(self.valid):
             raise ScanError(f"more links requested ({k}) than triangles ({len(self.valid)})")
+        if k > len(self.unit_tri):
+            raise ScanError(f"more links requested ({k}) than patches of the reduced method "
+                            f"({len(self.unit_tri)}); raise the memory budget")
 
     def segment(self, k: int, fields=None):
         """Links over ``fields`` (default all): ``(labels (Tv,), medoids (k, P_sel), fields)``.
@@ -201,7 +252,7 @@ class Segmenter:
         all_fields = [p for g in groups for p in g if self.weights[p] > 0]
         if not all_fields:
             raise ScanError("too few fields: no field moves the mesh")
-        n = len(self.valid)
+        n = len(self.unit_tri)
         if self.strategy == "summed":
             Z = self.summed_tree(all_fields)
             t0 = time.perf_counter()
@@ -228,16 +279,22 @@ class Segmenter:
         return self._finish(init, all_fields, k, t0)
 
     def _finish(self, init, all_fields, k, t0):
-        labels, medoids, sums = self._merge(init, all_fields, k, "merge")
+        """Merge units to k links, take their motion centroids, refine seams per triangle.
+
+        Returns ``(labels over the clustered triangles, medoids (k, P) as unit indices, fields)``.
+        """
+        labels_u, medoids, sums = self._merge(init, all_fields, k, "merge")
+        k = medoids.shape[0]
         feats = [self.features[p] for p in all_fields]
-        medoids = _merge.link_medoids(feats, self.weights[all_fields], labels, medoids.shape[0])
+        medoids = _merge.link_medoids(feats, self.weights[all_fields], labels_u, k)
+        labels = labels_u[self.unit_of]
         if self.refine:
             R = np.stack([self.features[p].R[medoids[:, i]] for i, p in enumerate(all_fields)])
             t = np.stack([self.features[p].t[medoids[:, i]] for i, p in enumerate(all_fields)])
             labels = _merge.refine_seams(self.scan.vertices, self.scan.fields()[all_fields], self.faces,
-                                         R, t, self.weights[all_fields], labels, self.adjacency,
-                                         fixed=np.unique(medoids))
-            medoids = _merge.link_medoids(feats, self.weights[all_fields], labels, medoids.shape[0])
+                                         R, t, self.weights[all_fields], labels, self.tri_adjacency,
+                                         fixed=self.unit_tri[np.unique(medoids)])
+            medoids = _merge.link_medoids(feats, self.weights[all_fields], labels[self.unit_tri], k)
         self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0
         return labels, medoids, all_fields
 

@@ -142,28 +142,41 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
     E = np.zeros((k, x0.shape[0]))
     for p in range(fields.shape[0]):
         if weights[p]:
-            moved = np.einsum("lij,nj->lni", R[p], x0) + t[p][:, None, :]
-            E += weights[p] * np.linalg.norm(moved - (x0 + fields[p])[None], axis=2)
+            X = x0 + fields[p]
+            for l in range(k):
+                d = x0 @ R[p, l].T + t[p, l] - X
+                E[l] += weights[p] * np.sqrt(np.einsum("ni,ni->n", d, d))
     scale = E.max() if E.size else 1.0
     inv = 1.0 / (E + 1e-12 * max(scale, 1e-300))
-    inv_f = inv[:, faces]                                    # (k, T, 3)
     a, b = adjacency[:, 0], adjacency[:, 1]
-    cols = np.arange(T)
     for _ in range(iterations):
-        allowed = np.zeros((k, T), dtype=bool)
-        allowed[labels, cols] = True
-        allowed[labels[b], a] = True
-        allowed[labels[a], b] = True
-        w = np.where(allowed[:, :, None], inv_f, 0.0)
+        # only triangles on a seam can move: those with a neighbour in another link
+        seam = np.zeros(T, dtype=bool)
+        diff = labels[a] != labels[b]
+        seam[a[diff]] = True
+        seam[b[diff]] = True
+        idx = np.flatnonzero(seam)
+        if idx.size == 0:
+            break
+        pos = np.full(T, -1)
+        pos[idx] = np.arange(idx.size)
+        allowed = np.zeros((k, idx.size), dtype=bool)
+        allowed[labels[idx], np.arange(idx.size)] = True
+        ea = diff & seam[a]
+        allowed[labels[b[ea]], pos[a[ea]]] = True
+        eb = diff & seam[b]
+        allowed[labels[a[eb]], pos[b[eb]]] = True
+        w = np.where(allowed[:, :, None], inv[:, faces[idx]], 0.0)     # (k, S, 3)
         w /= w.sum(axis=0, keepdims=True)
         score = w.sum(axis=2)
         best = score.argmax(axis=0)
-        change = score[best, cols] > score[labels, cols] * margin
+        cols = np.arange(idx.size)
+        change = score[best, cols] > score[labels[idx], cols] * margin
         if fixed is not None:
-            change[fixed] = False
+            change[np.isin(idx, fixed)] = False
         if not change.any():
             break
-        labels[change] = best[change]
+        labels[idx[change]] = best[change]
     return labels
 
 

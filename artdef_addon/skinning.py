@@ -123,10 +123,14 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
     for _ in range(max(rings - 1, 0)):
         cand = cand + A @ cand
     cand = cand > 0
-    # positions of every vertex under every link motion: Y (P, L, N, 3)
-    Y = np.einsum("plij,nj->plni", R, vertices) + t[:, :, None, :]
-    X = vertices[None] + fields                                       # (P, N, 3)
-    err = np.sqrt(np.einsum("plni,plni->ln", Y - X[:, None], Y - X[:, None]))  # (L, N)
+    # single-link error of every candidate, accumulated field by field: err (L, N)
+    P = R.shape[0]
+    err = np.zeros((L, N))
+    for p in range(P):
+        Xp = vertices + fields[p]
+        for l in range(L):
+            d = vertices @ R[p, l].T + t[p, l] - Xp
+            err[l] += np.sqrt(np.einsum("ni,ni->n", d, d))
     err = np.where(cand.T, err, np.inf)
     if L > max_influences:
         keep = np.argsort(err, axis=0)[:max_influences]                  # (m, N)
@@ -139,9 +143,13 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
     order = np.argsort(~mask, axis=0, kind="stable")[:m]                # candidate link ids (m, N)
     valid = np.take_along_axis(mask, order, axis=0).T                   # (N, m)
     cols = order.T                                                       # (N, m)
-    Yc = Y[:, cols, np.arange(N)[:, None], :]                           # (P, N, m, 3)
-    Q = np.einsum("pnai,pnbi->nab", Yc, Yc)
-    q = np.einsum("pnai,pni->na", Yc, X)
+    # Gram systems of the candidates, accumulated field by field (memory O(N m²))
+    Q = np.zeros((N, m, m))
+    q = np.zeros((N, m))
+    for p in range(P):
+        Yc = np.einsum("nmij,nj->nmi", R[p][cols], vertices) + t[p][cols]   # (N, m, 3)
+        Q += np.einsum("nai,nbi->nab", Yc, Yc)
+        q += np.einsum("nai,ni->na", Yc, vertices + fields[p])
     w = simplex_least_squares(Q, q, valid)
     out = np.zeros((N, L))
     np.put_along_axis(out, cols, w, axis=1)

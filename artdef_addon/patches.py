@@ -1,0 +1,97 @@
+"""The reduced method for large meshes: patches of triangles that move together (issue 6).
+
+A documented deviation from the paper, used when the all-pairs distance of the full method
+would not fit the memory budget:
+
+1. for every pair of edge-adjacent triangles, the largest weighted distance over all fields,
+   a_ij = max_p w_p ε_p(i, j) (Eq. 5 on neighbours only: O(T) per field, streamed);
+2. patches by heavy-edge matching (graph coarsening): in every round each patch proposes
+   the neighbour it agrees with most (smallest a), mutual proposals merge while the merged
+   patch stays within ``max_size`` triangles; the distance between two patches is the
+   largest a over their shared edges, so seams are merged last. Rounds repeat until at most
+   ``target`` patches remain (or nothing can merge);
+3. each patch is represented by its most central triangle; the method (distances, clustering,
+   merge, motion centroids) runs on these representatives;
+4. labels go back to every triangle of each patch and the seams are refined at triangle
+   resolution (:func:`merge.refine_seams`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .clustering import split
+from .metric import FieldFeatures
+
+
+def pair_distances(f: FieldFeatures, pairs: np.ndarray) -> np.ndarray:
+    """ε(i, j) for each row (i, j) of ``pairs`` (no matrix: one dot product a pair)."""
+    a, b = pairs[:, 0], pairs[:, 1]
+    r_ba = np.sqrt(np.maximum(np.einsum("ij,ij->i", f.g[b], f.f[a]), 0.0))
+    r_ab = np.sqrt(np.maximum(np.einsum("ij,ij->i", f.g[a], f.f[b]), 0.0))
+    return np.abs(r_ba - f.r_self[a]) + np.abs(r_ab - f.r_self[b])
+
+
+def _coarsen(n: int, adjacency: np.ndarray, agree: np.ndarray, target: int, max_size: int) -> np.ndarray:
+    """Heavy-edge matching rounds (see module docstring); returns patch labels (n,)."""
+    labels = np.arange(n)
+    size = np.ones(n, dtype=np.int64)
+    for _ in range(200):
+        u = labels[adjacency]
+        cross = u[:, 0] != u[:, 1]
+        if not cross.any() or labels.max() + 1 <= target:
+            break
+        e = np.sort(u[cross], axis=1)
+        w = agree[cross]
+        # patch-level distance: the largest over the shared triangle edges
+        order = np.lexsort((e[:, 1], e[:, 0]))
+        e, w = e[order], w[order]
+        first = np.ones(len(e), dtype=bool)
+        first[1:] = np.any(e[1:] != e[:-1], axis=1)
+        starts = np.flatnonzero(first)
+        pe = e[starts]
+        pw = np.maximum.reduceat(w, starts)
+        ok = size[pe[:, 0]] + size[pe[:, 1]] <= max_size
+        if not ok.any():
+            break
+        pe, pw = pe[ok], pw[ok]
+        # each patch's best partner
+        both = np.concatenate([pe, pe[:, ::-1]])
+        bw = np.concatenate([pw, pw])
+        o = np.lexsort((bw, both[:, 0]))
+        both = both[o]
+        head = np.ones(len(both), dtype=bool)
+        head[1:] = both[1:, 0] != both[:-1, 0]
+        best = np.full(labels.max() + 1, -1)
+        best[both[head, 0]] = both[head, 1]
+        a = np.flatnonzero(best >= 0)
+        mutual = a[(best[best[a]] == a) & (a < best[a])]
+        if mutual.size == 0:
+            break
+        new = np.arange(labels.max() + 1)
+        new[best[mutual]] = mutual
+        labels = np.unique(new[labels], return_inverse=True)[1]
+        size = np.bincount(labels)
+    return labels
+
+
+def make_patches(features_iter, n_triangles: int, adjacency: np.ndarray, centroids: np.ndarray,
+                 max_size: int, target: int):
+    """Patches (T,) and their representative triangles (U,) from per-field features.
+
+    ``features_iter`` yields ``(weight, FieldFeatures)`` one field at a time, so only one
+    field's features are alive at once.
+    """
+    agree = np.zeros(len(adjacency))
+    for w, f in features_iter:
+        if w:
+            np.maximum(agree, w * pair_distances(f, adjacency), out=agree)
+    labels = _coarsen(n_triangles, adjacency, agree, target, max_size)
+    labels = split(labels[None], adjacency)
+    n = labels.max() + 1
+    cnt = np.bincount(labels, minlength=n).astype(np.float64)
+    centre = np.stack([np.bincount(labels, centroids[:, d], minlength=n) for d in range(3)], axis=1) / cnt[:, None]
+    dist = np.linalg.norm(centroids - centre[labels], axis=1)
+    order = np.lexsort((dist, labels))
+    first = np.searchsorted(labels[order], np.arange(n))
+    reps = order[first]
+    return labels, reps

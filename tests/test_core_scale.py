@@ -1,0 +1,63 @@
+"""Scale (issue 6): cost estimate, the reduced method on patches, streaming over fields."""
+import numpy as np
+
+from artdef_addon import cost, fit as F, patches, quality, samples
+
+
+def test_estimate_switches_to_reduced_above_budget():
+    small = cost.estimate(2000, 20, 1000)
+    assert not small.reduced and small.memory_bytes < cost.DEFAULT_BUDGET
+    big = cost.estimate(1_000_000, 20, 500_000)
+    assert big.reduced and big.units <= cost.MAX_UNITS
+    assert big.memory_bytes < 4 * 2 ** 30
+    assert "reduced method" in big.describe()
+    # the full method's condensed matrix alone: 8·T(T−1)/2 bytes, twice
+    assert cost.full_memory(20000, 1, 0) >= 2 * 8 * 20000 * 19999 / 2
+
+
+def test_reduced_method_agrees_with_full():
+    scan, truth = samples.branching(noise=0.02, bulges=True)
+    full = F.fit(scan, 11)
+    seg = F.Segmenter(scan, reduce=True, max_units=300)
+    assert seg.reduced and len(seg.unit_tri) <= 300
+    assert any("reduced method" in n for n in seg.notes)
+    red = F.fit(scan, 11, segmenter=seg)
+    assert quality.adjusted_rand_index(red.face_labels, full.face_labels) >= 0.99
+    assert quality.adjusted_rand_index(red.face_labels, truth["face_labels"]) >= 0.99
+    diag = np.linalg.norm(np.ptp(scan.vertices, axis=0))
+    m = quality.match_links(red.face_labels, truth["face_labels"])
+    for l in range(11):
+        if truth["parents"][m[l]] >= 0:
+            assert np.linalg.norm(red.joints[l] - truth["joints"][m[l]]) < 0.01 * diag
+
+
+def test_auto_reduce_on_small_budget_says_so():
+    scan = samples.make("branching")
+    seg = F.Segmenter(scan, budget=2 ** 20)
+    assert seg.reduced and "reduced method" in " ".join(seg.notes)
+
+
+def test_patches_are_connected_bounded_and_do_not_cross_links():
+    scan, truth = samples.branching()
+    seg = F.Segmenter(scan, reduce=True, max_units=400)
+    labels = seg.unit_of
+    assert labels.max() + 1 == len(seg.unit_tri)
+    sizes = np.bincount(labels)
+    assert sizes.max() <= int(np.ceil(4.0 * len(labels) / 400))
+    # patches do not cross links: giving every patch its majority link mislabels only a few
+    # seam triangles (blended seams are where patches of two links meet)
+    tl = truth["face_labels"][seg.valid]
+    table = np.zeros((labels.max() + 1, tl.max() + 1))
+    np.add.at(table, (labels, tl), 1)
+    assert 1 - table.max(axis=1).sum() / len(tl) < 0.03
+    # representatives belong to their patch
+    assert np.all(labels[seg.unit_tri] == np.arange(len(seg.unit_tri)))
+
+
+def test_pair_distances_match_block():
+    scan = samples.make("rod")
+    from artdef_addon.metric import distance_block, field_features
+    f = field_features(scan.vertices, scan.displacements[0], scan.faces)
+    pairs = np.array([[0, 5], [10, 200], [300, 301]])
+    full = distance_block(f, pairs[:, 0], pairs[:, 1])
+    assert np.allclose(patches.pair_distances(f, pairs), np.diag(full), atol=1e-5)
