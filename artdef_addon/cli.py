@@ -28,6 +28,10 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--p-max", type=float, default=None,
                    help="strain hardening limit (> 1, in probe loads); off by default")
     f.add_argument("--max-links", type=int, default=30, help="upper bound for --links auto")
+    f.add_argument("--memory-budget", type=float, default=2.0,
+                   help="GB; above it the fit switches to the reduced method on patches")
+    f.add_argument("--reduce", choices=("auto", "on", "off"), default="auto",
+                   help="reduced method on patches: automatic by memory budget, always, never")
     f.add_argument("--strategy", choices=("auto", "summed", "paper"), default="auto",
                    help="how fields are combined: the paper's per-field trees with split-and-merge, "
                         "or one tree over the summed distances (auto: paper for Green's scans)")
@@ -90,6 +94,9 @@ def _cmd_info(a) -> int:
           f"{sc.n_fields} fields, {sc.n_loads} loads, "
           f"{0 if sc.support_vertices is None else len(sc.support_vertices)} support vertices, "
           f"{len(sc.degenerate_faces)} degenerate triangles, probe load {sc.probe_load:g}")
+    from .cost import estimate
+    print(estimate(sc.n_faces - len(sc.degenerate_faces), sc.n_fields, sc.n_vertices,
+                   "paper" if sc.kind == "greens" else "summed").describe())
     return 0
 
 
@@ -111,18 +118,20 @@ def _cmd_fit(a) -> int:
         raise _BadInput(str(exc)) from None
     t_load = time.perf_counter() - t0
     auto = str(a.links).strip().lower() == "auto"
+    if not auto:
+        try:
+            links = int(a.links)
+        except ValueError:
+            raise _BadInput(f"--links must be a whole number or 'auto', got {a.links!r}") from None
     try:
+        reduce = {"auto": None, "on": True, "off": False}[a.reduce]
+        seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
+        if not a.quiet:
+            print(seg.estimate.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
         if auto:
             from .linkcount import choose_links
-            seg = F.Segmenter(sc, strategy=a.strategy)
             choice = choose_links(seg, max_links=a.max_links)
             links = choice.links
-        else:
-            try:
-                links = int(a.links)
-            except ValueError:
-                raise _BadInput(f"--links must be a whole number or 'auto', got {a.links!r}") from None
-            seg = None
         result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
                        strategy=a.strategy, skin=a.skin)
     except S.ScanError as exc:

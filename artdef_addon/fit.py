@@ -63,6 +63,7 @@ class FitResult:
     skin: str = "seam"
     timings: dict = dataclasses.field(default_factory=dict)
     pseudo: list | None = None
+    notes: list = dataclasses.field(default_factory=list)
 
     @property
     def n_links(self) -> int:
@@ -85,6 +86,7 @@ class FitResult:
         lines.append(f"rms error: articulation {self.rms_articulation:.4g} "
                      f"({self.articulation_error_percent:.2f}%), articulation + residual {self.rms_total:.3g}")
         lines.append("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in self.timings.items()))
+        lines.extend(f"note: {n}" for n in self.notes)
         return "\n".join(lines)
 
 
@@ -385,6 +387,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     areas = 0.5 * np.linalg.norm(np.cross(x0[faces[:, 1]] - x0[faces[:, 0]],
                                           x0[faces[:, 2]] - x0[faces[:, 0]]), axis=1)
     centroid = np.zeros((L, 3))
+    link_vids = [np.unique(faces[labels == l]) for l in range(L)]
     for l in range(L):
         m = labels == l
         w = areas[m]
@@ -463,7 +466,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
         tot_err[i] = np.sum((back - x1) ** 2)
         # rigid-motion residual of each link's own motion over its vertices (fit quality)
         for l in range(L):
-            vid = np.unique(faces[labels == l])
+            vid = link_vids[l]
             d = x0[vid] @ R[i, l].T + t[i, l] - x1[vid]
             link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
     rms_art = float(np.sqrt(art_err.sum() / (P * N)))
@@ -573,6 +576,7 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     timings.update(result.timings)
     timings["total"] = time.perf_counter() - t_start
     result.timings = timings
+    result.notes = list(seg.notes)
     _report(progress, "done", 1.0)
     return result
 

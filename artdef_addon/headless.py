@@ -308,7 +308,8 @@ def _bounds_world(obj, depsgraph):
 
 
 def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
-    """Workbench render of the scene's first frame: the mesh coloured by its
+    """Workbench render of the first fitted pose (frame_start + 10: a tracked scan's replay keys
+    field 0 there with the default 10 frames per field; the rest pose is frame 0): the mesh coloured by its
     active colour attribute (the fit's link colours), the deforming bones, as
     posed, drawn as octahedral sticks in front of it (armatures are overlays,
     which renders never show)."""
@@ -319,7 +320,7 @@ def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
     scene = bpy.context.scene
     depsgraph = bpy.context.evaluated_depsgraph_get()
     frame_before = scene.frame_current
-    scene.frame_set(scene.frame_start)
+    scene.frame_set(min(scene.frame_end, scene.frame_start + 10))
 
     mesh_colors = mesh.data.color_attributes
     if mesh_colors.active_color is None and len(mesh_colors):
