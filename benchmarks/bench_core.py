@@ -14,6 +14,14 @@ Usage (from the repository root):
     .venv/bin/python benchmarks/bench_core.py            # full: 1k/5k/20k × 10/50 (minutes)
     .venv/bin/python benchmarks/bench_core.py --quick    # 1k/5k × 10/50, T up to 5k for (a)
     .venv/bin/python benchmarks/bench_core.py --sizes 20000 --fields 20 --skip-eps
+    .venv/bin/python benchmarks/bench_core.py --scale    # issue 6: 20k/100k/1M × 20/200, full vs reduced
+    .venv/bin/python benchmarks/bench_core.py --sizes 20000 --fields 50 --skip-eps --dembones
+
+``--method full|reduced|both`` forces the core's full or reduced (patch) method (``auto`` lets the
+core choose from its memory budget); ``both`` runs the full method where it fits in 70% of RAM and
+the reduced one, and prints the ARI between their labels. ``--dembones`` also times py-dem-bones on
+the same scan (11 bones) and prints artdef's time / Dem Bones' time. ``--skin`` passes the fit's
+skin option (seam/refined).
 
 Results are also written as Markdown to ``benchmarks/results/bench_core.md`` (``--out``).
 """
@@ -106,56 +114,116 @@ def dembones_case(scan, bones: int) -> dict:
     return dict(db_s=secs, db_kg=float(err), db_bones=int(W.shape[0]))
 
 
-def run_case(target: int, n_fields: int, strategy: str, weights: str | None, dembones: bool = False) -> dict:
+def _fit_option(name: str, value):
+    """``{name: value}`` if this core's fit() takes ``name`` (the skin/weights option is new)."""
+    if value is None:
+        return {}
+    params = inspect.signature(F.fit).parameters
+    for n in (name, "skin", "weights"):
+        if n in params:
+            return {n: value}
+    return {}
+
+
+def _segmenter_kw(method: str) -> dict:
+    """Force the full or the reduced method when the core's Segmenter has ``reduce=`` (issue 6)."""
+    if method == "auto":
+        return {}
+    if "reduce" not in inspect.signature(F.Segmenter.__init__).parameters:
+        raise SystemExit(f"this core has no reduced method: --method {method} is not available")
+    return {"reduce": method == "reduced"}
+
+
+def run_case(target: int, n_fields: int, strategy: str, skin: str | None, dembones: bool = False,
+             method: str = "auto", labels_out: str | None = None) -> dict:
     """One end-to-end fit in this process (called in a fresh subprocess by the driver)."""
     t0 = time.perf_counter()
     scan, truth = branching_scan(target, n_fields=n_fields, seed=7)
     t_gen = time.perf_counter() - t0
     rss0 = _status_kb("VmRSS")
-    kw = dict(strategy=strategy)
-    if weights is not None:
-        kw["weights"] = weights
-    res = F.fit(scan, truth["n_links"], **kw)
+    t0 = time.perf_counter()
+    seg = F.Segmenter(scan, strategy=strategy, **_segmenter_kw(method))
+    res = F.fit(scan, truth["n_links"], segmenter=seg, **_fit_option("skin", skin))
+    wall = time.perf_counter() - t0
     peak = _status_kb("VmHWM")
+    timings = dict(res.timings)
+    timings["total"] = wall  # the Segmenter was built outside fit(): count it
     ari = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
-    out = dict(T=scan.n_faces, N=scan.n_vertices, P=n_fields, generate_s=t_gen, timings=res.timings,
+    out = dict(T=scan.n_faces, N=scan.n_vertices, P=n_fields, generate_s=t_gen, timings=timings,
                peak_mb=peak / 1024, rss_before_mb=rss0 / 1024, ari=ari, links=res.n_links,
-               kg=res.articulation_error_percent, weights=weights or "default")
+               kg=res.articulation_error_percent, skin=getattr(res, "skin", "seam"),
+               method="reduced" if getattr(seg, "reduced", False) else "full",
+               notes=list(getattr(res, "notes", []) or []))
+    if labels_out:
+        np.save(labels_out, res.face_labels)
     if dembones:  # after the fit's peak memory was read
         out.update(dembones_case(scan, truth["n_links"]))
     return out
 
 
-def bench_fit(sizes, fields, repeats: int, strategy: str, weights: str | None, big: int, dembones: bool = False):
+def _child(target, P, a, method, labels_out=None):
+    cmd = [sys.executable, os.path.abspath(__file__), "--case", str(target), str(P), "--strategy", a.strategy,
+           "--method", method]
+    if a.skin:
+        cmd += ["--skin", a.skin]
+    if a.dembones:
+        cmd += ["--dembones"]
+    if labels_out:
+        cmd += ["--labels-out", labels_out]
+    cp = subprocess.run(cmd, capture_output=True, text=True)
+    if cp.returncode != 0:
+        print(f"  {target}×{P} ({method}): FAILED\n{cp.stderr[-2000:]}", flush=True)
+        return None
+    return json.loads(cp.stdout.strip().splitlines()[-1])
+
+
+def full_fits(target: int, P: int, avail: float) -> bool:
+    """Whether the full method's condensed matrices (linkage copies the sum) fit in ``avail`` bytes."""
+    T = 1072 * max(1, int(round(np.sqrt(target / 1072)))) ** 2
+    return 2 * 8.0 * T * (T - 1) / 2 + 8.0 * 63 * T * P < avail
+
+
+def bench_fit(sizes, fields, a):
+    """Every size × field count; ``a.method`` auto/full/reduced, or ``both`` (full where it fits in
+    memory, and the reduced method, with the ARI between their labels)."""
+    import tempfile
     rows = []
+    avail = 0.7 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     for target in sizes:
         for P in fields:
-            n = repeats if target < big else 1
-            runs = []
-            for _ in range(n):
-                cmd = [sys.executable, os.path.abspath(__file__), "--case", str(target), str(P), "--strategy", strategy]
-                if weights:
-                    cmd += ["--weights", weights]
-                if dembones:
-                    cmd += ["--dembones"]
-                cp = subprocess.run(cmd, capture_output=True, text=True)
-                if cp.returncode != 0:
-                    print(f"  {target}×{P}: FAILED\n{cp.stderr[-2000:]}", flush=True)
-                    break
-                runs.append(json.loads(cp.stdout.strip().splitlines()[-1]))
-            if not runs:
-                continue
-            stages = {k: statistics.median(r["timings"][k] for r in runs) for k in runs[0]["timings"]}
-            row = dict(runs[0], timings=stages, peak_mb=max(r["peak_mb"] for r in runs), repeats=len(runs))
-            if "db_s" in runs[0]:
-                row["db_s"] = statistics.median(r["db_s"] for r in runs)
-            rows.append(row)
-            st = ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
-            print(f"  T={row['T']:6d} P={P:3d} (median of {len(runs)}): {st} s; peak RSS {row['peak_mb']:.0f} MB "
-                  f"(+{row['peak_mb'] - row['rss_before_mb']:.0f} over the loaded scan); ARI {row['ari']:.4f}; "
-                  f"articulation error {row['kg']:.2f}%"
-                  + (f"; Dem Bones {row['db_s']:.2f} s ({row['db_kg']:.2f}%), artdef/Dem Bones time "
-                     f"{stages['total'] / row['db_s']:.2f}" if "db_s" in row else ""), flush=True)
+            methods = [a.method] if a.method != "both" else (
+                ["full", "reduced"] if full_fits(target, P, avail) else ["reduced"])
+            labels = {}
+            for method in methods:
+                n = a.repeats if target < a.big else 1
+                runs = []
+                tmp = tempfile.NamedTemporaryFile(suffix=".npy", delete=False).name if a.method == "both" else None
+                for _ in range(n):
+                    r = _child(target, P, a, method, tmp)
+                    if r is None:
+                        break
+                    runs.append(r)
+                if not runs:
+                    continue
+                if tmp:
+                    labels[method] = np.load(tmp)
+                    os.unlink(tmp)
+                stages = {k: statistics.median(r["timings"][k] for r in runs) for k in runs[0]["timings"]}
+                row = dict(runs[0], timings=stages, peak_mb=max(r["peak_mb"] for r in runs), repeats=len(runs))
+                if "db_s" in runs[0]:
+                    row["db_s"] = statistics.median(r["db_s"] for r in runs)
+                if method == "reduced" and "full" in labels and "reduced" in labels:
+                    row["ari_full"] = quality.adjusted_rand_index(labels["full"], labels["reduced"])
+                rows.append(row)
+                st = ", ".join(f"{k} {v:.2f}" for k, v in stages.items())
+                print(f"  T={row['T']:7d} P={P:3d} {row['method']:7s} (median of {len(runs)}): {st} s; "
+                      f"peak RSS {row['peak_mb']:.0f} MB (+{row['peak_mb'] - row['rss_before_mb']:.0f} over the "
+                      f"loaded scan); ARI {row['ari']:.4f}; articulation error {row['kg']:.2f}% ({row['skin']} skin)"
+                      + (f"; ARI reduced vs full {row['ari_full']:.4f}" if "ari_full" in row else "")
+                      + (f"; Dem Bones {row['db_s']:.2f} s ({row['db_kg']:.2f}%), artdef/Dem Bones time "
+                         f"{stages['total'] / row['db_s']:.2f}" if "db_s" in row else ""), flush=True)
+                for note in row.get("notes", []):
+                    print("    note:", note)
     return rows
 
 
@@ -164,17 +232,23 @@ def fit_table(rows) -> str:
     extra = sorted({k for r in rows for k in r["timings"]} - set(names) - {"total"})
     cols = names + extra
     db = any("db_s" in r for r in rows)
-    out = ["| triangles | fields | " + " | ".join(f"{c} (s)" for c in cols) +
-           " | total (s) | peak RSS (MB) | Δ RSS in fit (MB) | ARI | articulation error (%) | runs |"
-           + (" Dem Bones (s) | Dem Bones error (%) | artdef / Dem Bones time |" if db else ""),
-           "|---:|---:|" + "---:|" * (len(cols) + 6 + (3 if db else 0))]
+    agree = any("ari_full" in r for r in rows)
+    head = (["triangles", "fields", "method"] + [f"{c} (s)" for c in cols] +
+            ["total (s)", "peak RSS (MB)", "Δ RSS in fit (MB)", "ARI vs truth", "articulation error (%)", "runs"]
+            + (["ARI reduced vs full"] if agree else [])
+            + (["Dem Bones (s)", "Dem Bones error (%)", "artdef / Dem Bones time"] if db else []))
+    out = ["| " + " | ".join(head) + " |", "|---:|---:|---|" + "---:|" * (len(head) - 3)]
     for r in rows:
         t = r["timings"]
-        out.append(f"| {r['T']:,} | {r['P']} | " + " | ".join(f"{t.get(c, 0.0):.2f}" for c in cols) +
-                   f" | {t['total']:.2f} | {r['peak_mb']:.0f} | {r['peak_mb'] - r['rss_before_mb']:.0f} | "
-                   f"{r['ari']:.4f} | {r['kg']:.2f} | {r['repeats']} |"
-                   + (f" {r['db_s']:.2f} | {r['db_kg']:.2f} | {t['total'] / r['db_s']:.2f} |" if "db_s" in r else
-                      (" — | — | — |" if db else "")))
+        cells = [f"{r['T']:,}", str(r["P"]), r.get("method", "full")] + [f"{t.get(c, 0.0):.2f}" for c in cols]
+        cells += [f"{t['total']:.2f}", f"{r['peak_mb']:.0f}", f"{r['peak_mb'] - r['rss_before_mb']:.0f}",
+                  f"{r['ari']:.4f}", f"{r['kg']:.2f}", str(r["repeats"])]
+        if agree:
+            cells.append(f"{r['ari_full']:.4f}" if "ari_full" in r else "—")
+        if db:
+            cells += ([f"{r['db_s']:.2f}", f"{r['db_kg']:.2f}", f"{t['total'] / r['db_s']:.2f}"] if "db_s" in r
+                      else ["—", "—", "—"])
+        out.append("| " + " | ".join(cells) + " |")
     return "\n".join(out)
 
 
@@ -198,7 +272,12 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3, help="repeats per timing (median); fits above --big run once")
     ap.add_argument("--big", type=int, default=10000, help="fits of at least this many triangles run once")
     ap.add_argument("--strategy", default="auto", help="fit strategy (auto|summed|paper)")
-    ap.add_argument("--weights", default=None, help="fit weights= option, when the core has it (e.g. refined)")
+    ap.add_argument("--skin", default=None, help="fit skin option when the core has it (seam|refined|auto)")
+    ap.add_argument("--method", default="auto", choices=("auto", "full", "reduced", "both"),
+                    help="full or reduced (patch) method, when the core has it; both = each, with their ARI")
+    ap.add_argument("--scale", action="store_true",
+                    help="issue 6 sizes: 20k/100k/1M triangles × 20/200 fields, --method both, no (a)")
+    ap.add_argument("--labels-out", help=argparse.SUPPRESS)
     ap.add_argument("--dembones", action="store_true",
                     help="also time py-dem-bones (11 bones, 4 influences, 30 iterations) on each scan and print the ratio")
     ap.add_argument("--skip-eps", action="store_true")
@@ -207,11 +286,16 @@ def main(argv=None):
     ap.add_argument("--case", nargs=2, type=int, metavar=("TRIANGLES", "FIELDS"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.case:
-        print(json.dumps(run_case(a.case[0], a.case[1], a.strategy, a.weights, a.dembones)))
+        print(json.dumps(run_case(a.case[0], a.case[1], a.strategy, a.skin, a.dembones, a.method, a.labels_out)))
         return
-    if a.weights and "weights" not in inspect.signature(F.fit).parameters:
-        print(f"note: this core's fit() has no weights= option; ignoring --weights {a.weights}")
-        a.weights = None
+    if a.skin and not _fit_option("skin", a.skin):
+        print(f"note: this core's fit() has no skin option; ignoring --skin {a.skin}")
+        a.skin = None
+    if a.scale:
+        a.sizes = a.sizes or "20000,100000,1000000"
+        a.fields = "20,200" if a.fields == "10,50" else a.fields
+        a.method = "both" if a.method == "auto" else a.method
+        a.skip_eps = True
     sizes = [int(s) for s in a.sizes.split(",")] if a.sizes else ([1000, 5000] if a.quick else [1000, 5000, 20000])
     fields = [int(s) for s in a.fields.split(",")]
     print("machine:", machine())
@@ -230,9 +314,11 @@ def main(argv=None):
             except Exception as exc:  # noqa: BLE001
                 print(f"note: py-dem-bones does not import ({type(exc).__name__}: {exc}); no Dem Bones times")
                 a.dembones = False
-        rows = bench_fit(sizes, fields, a.repeats, a.strategy, a.weights, a.big, a.dembones)
-        md += [f"## End-to-end fit (generated branching object, 11 links, strategy {a.strategy}"
-               + (f", weights {a.weights}" if a.weights else "") + ")", "", fit_table(rows), ""]
+        rows = bench_fit(sizes, fields, a)
+        md += [f"## End-to-end fit (generated branching object, 11 links, strategy {a.strategy}, method {a.method}"
+               + (f", skin {a.skin}" if a.skin else "") + ")", "", fit_table(rows), ""]
+        notes = sorted({n for r in rows for n in r.get("notes", [])})
+        md += [f"- note from the fit: {n}" for n in notes] + ([""] if notes else [])
         print(fit_table(rows))
     md.append(f"Benchmark wall time: {time.perf_counter() - t_all:.0f} s.")
     print(md[-1])
