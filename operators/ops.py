@@ -11,10 +11,12 @@ import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from ..artdef_addon import cost as _cost
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
 from . import fitquality, io, rig
-from .props import MODE_ITEMS, MOTION_ITEMS, SKIN_ITEMS
+from .props import (BUDGET_MIN, BUDGET_SOFT_MIN, MEMORY_BUDGET_DESCRIPTION, MODE_ITEMS,
+                    MOTION_ITEMS, REDUCE_ITEMS, SKIN_ITEMS)
 
 try:  # automatic link count (issue 5), in cores that have it
     from ..artdef_addon import linkcount as _linkcount
@@ -36,8 +38,10 @@ PROGRESS_HOOKS = []
 LAST_RESULTS = {}
 
 #: Segmenter cache shared by Preview Links and Fit: object name ->
-#: (scan fingerprint, Segmenter).  The segmenter holds the expensive pairwise
-#: distances/trees, so changing the link count does not recompute them.
+#: (key, Segmenter), the key being the scan fingerprint and the method settings
+#: that shape the segmenter (see :func:`segmenter_key`).  The segmenter holds the
+#: expensive pairwise distances/trees, so changing the link count does not
+#: recompute them; changing Reduced Method or Memory Budget does.
 _SEGMENTERS = {}
 _SEGMENTER_CACHE_SIZE = 2
 
@@ -47,10 +51,67 @@ _SEGMENTER_CACHE_SIZE = 2
 _THREAD_JOBS = []
 
 
-def _cached_segmenter(name, fingerprint):
-    """The cached Segmenter for this scan, unless a worker thread still uses it."""
+# --------------------------------------------------------------------------
+# method settings: reduced method and memory budget (issue 6)
+# --------------------------------------------------------------------------
+
+GB = 2 ** 30  # the core's budgets are bytes; DEFAULT_BUDGET is 2 * 2**30
+
+
+def strategy_for(kind):
+    """The strategy the core's Segmenter picks by default ("auto")."""
+    return "paper" if kind == "greens" else "summed"
+
+
+def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0):
+    """What a fit with these settings will do, from counts only (no fit).
+
+    Returns ``(estimate, reduce_arg)``: the core's :class:`cost.Estimate` for the
+    method that will run (``estimate.reduced``) and the ``reduce`` argument for the
+    Segmenter (None: the core decides by the budget, and notes why).
+    """
+    budget = float(budget_gb) * GB
+    strategy = strategy_for(kind)
+    if reduce == 'OFF':
+        return _cost.estimate(triangles, fields, vertices, strategy, float("inf")), False
+    if reduce == 'ON':
+        # the estimate of the reduced branch, with the patch count this budget gives
+        units = min(triangles, _cost.reduced_units(budget))
+        return _cost.estimate(triangles, fields, vertices, strategy, 0.0, units=units), True
+    return _cost.estimate(triangles, fields, vertices, strategy, budget), None
+
+
+def segmenter_key(fingerprint, reduced, reduce='AUTO', budget_gb=2.0):
+    """Cache key of a Segmenter: what its result depends on.
+
+    The full method does not depend on the budget (any budget, Auto or Off give the
+    same segmenter); the reduced one depends on it through the patch count, and under
+    Auto its note quotes the budget.
+    """
+    if not reduced:
+        return (fingerprint, False)
+    if reduce == 'AUTO':
+        return (fingerprint, True, 'AUTO', round(float(budget_gb), 6))
+    return (fingerprint, True, reduce, _cost.reduced_units(float(budget_gb) * GB))
+
+
+def valid_triangles(scan):
+    """Triangles the core segments (degenerate ones take their neighbours' link)."""
+    return scan.n_faces - len(scan.degenerate_faces)
+
+
+def planned_key(stored, reduce, budget_gb):
+    """``(key, reduce_arg)`` of the Segmenter these settings make for ``stored``."""
+    scan = stored.scan
+    est, reduce_arg = method_plan(valid_triangles(scan), scan.n_fields, scan.n_vertices,
+                                  scan.kind, reduce, budget_gb)
+    return segmenter_key(stored.fingerprint, est.reduced, reduce, budget_gb), reduce_arg
+
+
+def _cached_segmenter(name, key):
+    """The cached Segmenter for this key, unless a worker thread still uses it."""
     cached = _SEGMENTERS.get(name)
-    if cached is None or cached[0] != fingerprint:
+    if cached is None or cached[0] != key:
         return None
     _THREAD_JOBS[:] = [j for j in _THREAD_JOBS if j.thread.is_alive()]
     if any(j.segmenter is cached[1] for j in _THREAD_JOBS):
@@ -58,9 +119,9 @@ def _cached_segmenter(name, fingerprint):
     return cached[1]
 
 
-def _cache_segmenter(name, fingerprint, seg):
+def _cache_segmenter(name, key, seg):
     _SEGMENTERS.pop(name, None)
-    _SEGMENTERS[name] = (fingerprint, seg)
+    _SEGMENTERS[name] = (key, seg)
     while len(_SEGMENTERS) > _SEGMENTER_CACHE_SIZE:
         _SEGMENTERS.pop(next(iter(_SEGMENTERS)))
 
@@ -192,12 +253,41 @@ class ARTDEF_OT_fields_from_shape_keys(bpy.types.Operator):
 # fit
 # --------------------------------------------------------------------------
 
+#: Status-bar wording of the progress stages the core reports; ``True``: the
+#: stage reports fractions (show a percentage), ``False``: one report at its start.
+_STAGES = {
+    "start": ("starting", False),
+    "features": ("motions per triangle and field", True),
+    "distances": ("pairwise distances", True),
+    "cluster": ("clustering", True),
+    "merge": ("merging pieces into links", True),
+    "links": ("choosing the link count", True),
+    "joints": ("joints, bones and skin weights", False),
+    "pseudo": ("one model per load point", True),
+    "done": ("finishing", False),
+}
+
+
+def stage_text(stage, fraction):
+    """A stage report as the status bar shows it: ``merge column 2`` -> readable words."""
+    label, fractional = _STAGES.get(stage, (None, True))
+    if label is None and stage.startswith("merge column "):
+        label = f"merging pieces into links (load point {stage[len('merge column '):]})"
+    if label is None:
+        label = stage
+    if not fractional:
+        return label
+    return f"{label} {100 * min(max(fraction, 0.0), 1.0):.0f}%"
+
+
 class _FitJob:
     """One fit: the core runs here (possibly in a worker thread); no bpy access."""
 
     def __init__(self, scan, links, mode, motion, p_max, segmenter=None, load_index=0,
-                 skin=None, max_links=None):
+                 skin=None, max_links=None, reduce=None, budget=_cost.DEFAULT_BUDGET):
         self.scan, self.links, self.mode, self.motion, self.p_max = scan, links, mode, motion, p_max
+        self.reduce = reduce            # Segmenter's reduce: None (by budget), True, False
+        self.budget = budget            # bytes
         self.load_index = load_index
         self.skin = skin                # 'seam' | 'refined' | None: the core's default
         self.max_links = max_links      # not None: choose the link count, up to this
@@ -206,6 +296,7 @@ class _FitJob:
         self.model = None            # the result whose rig is built (pseudo: one load point's)
         self.vertex_residual = None  # (N,) articulation residual of ``model``
         self.stage, self.fraction = "start", 0.0
+        self.links_fraction = None   # while Auto Links tries link counts: how far it is
         self.cancel = threading.Event()
         self.result = None
         self.error = None
@@ -214,6 +305,8 @@ class _FitJob:
 
     def progress(self, stage, fraction):
         self.stage, self.fraction = stage, float(fraction)
+        if stage == "links":
+            self.links_fraction = float(fraction)
         if self.cancel.is_set():
             return True
         return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))
@@ -227,10 +320,16 @@ class _FitJob:
         t0 = time.perf_counter()
         try:
             if self.segmenter is None:
-                self.segmenter = _fit.Segmenter(self.scan, callback)
+                self.segmenter = _fit.Segmenter(self.scan, callback, reduce=self.reduce,
+                                                budget=self.budget)
             if self.max_links is not None:
                 self.segmenter.progress = callback
-                choice = _linkcount.choose_links(self.segmenter, self.max_links, progress=callback)
+                self.links_fraction = 0.0
+                try:
+                    choice = _linkcount.choose_links(self.segmenter, self.max_links,
+                                                     progress=callback)
+                finally:
+                    self.links_fraction = None
                 self.links, self.link_reason = int(choice.links), str(choice.reason)
             extra = {} if self.skin is None else {"skin": self.skin}
             self.result = _fit.fit(self.scan, self.links, mode=self.mode, motion=self.motion,
@@ -243,6 +342,23 @@ class _FitJob:
             if self.segmenter is not None:
                 self.segmenter.progress = None  # don't keep this job's callback in the cache
         self.seconds = time.perf_counter() - t0
+
+    @property
+    def notes(self):
+        """The core's notes on this fit (e.g. that and why the reduced method ran)."""
+        return [str(n) for n in (getattr(self.result, "notes", None) or [])]
+
+    @property
+    def reduced(self):
+        return bool(getattr(self.segmenter, "reduced", False))
+
+    def status_text(self):
+        """What the status bar shows while the job runs."""
+        text = stage_text(self.stage, self.fraction)
+        if self.links_fraction is not None and self.stage != "links":
+            # Auto Links segments every count up to Max Links: say where it is overall
+            text = f"{stage_text('links', self.links_fraction)} ({text})"
+        return text
 
     def _quality(self):
         """The model to build and its per-vertex articulation residual."""
@@ -294,6 +410,13 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                        description="Skin weights: seam-blended, or refined per vertex by least "
                                    "squares over all fields (Auto: refined for tracked scans, "
                                    "seam for Green's scans)")
+    reduce: EnumProperty(name="Reduced Method", items=REDUCE_ITEMS, default='AUTO',
+                         description="Segment small patches of triangles instead of every "
+                                     "triangle (large scans); Auto: when the full method would "
+                                     "exceed the Memory Budget")
+    memory_budget: FloatProperty(name="Memory Budget", default=2.0, min=BUDGET_MIN,
+                                 soft_min=BUDGET_SOFT_MIN, soft_max=64.0, precision=2,
+                                 description=MEMORY_BUDGET_DESCRIPTION)
 
     _job = None
     _timer = None
@@ -309,7 +432,7 @@ class ARTDEF_OT_fit(bpy.types.Operator):
         if props.is_property_set("links") and not props.is_property_set("auto_links"):
             self.auto_links = False  # fit(links=L) means L links
         for name in ("links", "mode", "motion", "p_max", "load_index", "frames_per_field",
-                     "auto_links", "max_links", "skin"):
+                     "auto_links", "max_links", "skin", "reduce", "memory_budget"):
             if not props.is_property_set(name):
                 setattr(self, name, getattr(st, name))
 
@@ -341,11 +464,13 @@ class ARTDEF_OT_fit(bpy.types.Operator):
             self.report({'ERROR'}, "This ArtDef core cannot choose the link count: "
                                    "turn Auto Links off")
             return None
+        key, reduce_arg = planned_key(stored, self.reduce, self.memory_budget)
         job = _FitJob(scan, self.links, self.mode.lower(), self.motion.lower(),
                       None if self.p_max == 0.0 else float(self.p_max),
-                      _cached_segmenter(obj.name, stored.fingerprint), self.load_index,
+                      _cached_segmenter(obj.name, key), self.load_index,
                       skin=None if self.skin == 'AUTO' else self.skin.lower(),
-                      max_links=self.max_links if self.auto_links else None)
+                      max_links=self.max_links if self.auto_links else None,
+                      reduce=reduce_arg, budget=self.memory_budget * GB)
         job.obj_name = obj.name
         job.tri_polygons = stored.tri_polygons
         job.fingerprint = stored.fingerprint
@@ -368,7 +493,9 @@ class ARTDEF_OT_fit(bpy.types.Operator):
         if obj is None or obj.type != 'MESH' or len(obj.data.vertices) != len(job.scan.vertices):
             self.report({'ERROR'}, "The mesh changed while fitting; nothing was created")
             return {'CANCELLED'}
-        _cache_segmenter(job.obj_name, job.fingerprint, job.segmenter)
+        # keyed on what the core actually built (the plan predicts it; never trust a guess)
+        _cache_segmenter(job.obj_name, segmenter_key(job.fingerprint, job.reduced, self.reduce,
+                                                     self.memory_budget), job.segmenter)
         self.links = job.links  # chosen by Auto Links, or as given
         if job.link_reason:
             self.report({'INFO'}, job.link_reason)
@@ -391,10 +518,15 @@ class ARTDEF_OT_fit(bpy.types.Operator):
             return {'CANCELLED'}
         LAST_RESULTS[obj.name] = model
         self._store_summary(obj, model, job)
+        # The core's notes (why and how the reduced method ran) go to the Info log; the
+        # summary, reported last, is what the status bar keeps, so it names the method too.
+        for note in job.notes:
+            self.report({'INFO'}, f"ArtDef: {note}")
         self.report({'INFO'}, f"'{obj.name}': {model.n_links} links, rms articulation "
                               f"{model.rms_articulation:.4g} "
                               f"({model.articulation_error_percent:.2f}%), rms total "
                               f"{model.rms_total:.4g} ({job.seconds:.2f} s)"
+                              + ("; reduced method on patches" if job.reduced else "")
                               + (f"; {obj.artdef.fit_replay}" if obj.artdef.fit_replay else ""))
         return {'FINISHED'}
 
@@ -437,11 +569,14 @@ class ARTDEF_OT_fit(bpy.types.Operator):
             st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
         st.fit_link_reason = job.link_reason
         st.fit_skin = str(getattr(model, "skin", "") or "")
+        st.fit_notes = "\n".join(job.notes)
+        st.fit_reduced = job.reduced
         # Remember the settings that made this rig (Links: the count used, also when chosen).
         st.links, st.mode, st.motion = self.links, self.mode, self.motion
         st.p_max, st.load_index = self.p_max, self.load_index
         st.frames_per_field = self.frames_per_field
         st.auto_links, st.max_links, st.skin = self.auto_links, self.max_links, self.skin
+        st.reduce, st.memory_budget = self.reduce, self.memory_budget
 
     # -- synchronous path (scripts, background mode) -------------------------
     def execute(self, context):
@@ -469,7 +604,7 @@ class ARTDEF_OT_fit(bpy.types.Operator):
         self._timer = wm.event_timer_add(0.1, window=context.window)
         wm.modal_handler_add(self)
         job.start_thread()
-        self._status(context, "starting")
+        self._status(context, job.status_text())
         return {'RUNNING_MODAL'}
 
     def _status(self, context, text):
@@ -494,7 +629,7 @@ class ARTDEF_OT_fit(bpy.types.Operator):
             return {'CANCELLED'}
         if event.type == 'TIMER':
             context.window_manager.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0)))
-            self._status(context, f"{job.stage} {100 * job.fraction:.0f}%")
+            self._status(context, job.status_text())
             if not job.thread.is_alive():
                 self._end(context)
                 return self._finish(context, job)
@@ -515,13 +650,17 @@ class ARTDEF_OT_fit(bpy.types.Operator):
 # --------------------------------------------------------------------------
 
 def _segmenter(obj):
+    """The Segmenter for ``obj``'s scan and its Reduced Method / Memory Budget settings."""
     stored = io.read_scan(obj)
-    seg = _cached_segmenter(obj.name, stored.fingerprint)
+    st = obj.artdef
+    key, reduce_arg = planned_key(stored, st.reduce, st.memory_budget)
+    seg = _cached_segmenter(obj.name, key)
     if seg is not None:
         seg.progress = None
         return seg, stored, True
-    seg = _fit.Segmenter(stored.scan)
-    _cache_segmenter(obj.name, stored.fingerprint, seg)
+    seg = _fit.Segmenter(stored.scan, reduce=reduce_arg, budget=st.memory_budget * GB)
+    _cache_segmenter(obj.name, segmenter_key(stored.fingerprint, seg.reduced, st.reduce,
+                                             st.memory_budget), seg)
     return seg, stored, False
 
 

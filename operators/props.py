@@ -22,6 +22,20 @@ SKIN_ITEMS = (
     ('REFINED', "Refined", "Per-vertex convex weights (at most 4 nearby links) solved by least "
                            "squares over all fields: reproduces the capture closely with few bones"),
 )
+REDUCE_ITEMS = (
+    ('AUTO', "Auto", "Use the reduced method on patches only when the full method would need more "
+                     "memory than the Memory Budget (the fit then says so)"),
+    ('ON', "On", "Always use the reduced method: the method on small patches of triangles whose "
+                 "motions agree, seams refined per triangle (fast, bounded memory)"),
+    ('OFF', "Off", "Always use the paper's full method over all triangle pairs (memory grows "
+                   "with the square of the triangle count)"),
+)
+#: Memory Budget: the UI drags down to ``soft_min``; a script may go lower (tests, tiny scans).
+BUDGET_MIN, BUDGET_SOFT_MIN = 0.001, 0.1
+MEMORY_BUDGET_DESCRIPTION = (
+    "Most memory the fit may use, in GB (2^30 bytes). With Reduced Method 'Auto' a scan whose "
+    "full method would need more switches to the reduced method on patches instead of running "
+    "out of memory; it also sets how many patches the reduced method uses")
 MOTION_ITEMS = (
     ('ROBUST', "Robust", "Robust rigid-motion estimate per link (down-weights outliers)"),
     ('LSQ', "Least Squares", "Plain least-squares rigid motion per link"),
@@ -78,6 +92,12 @@ class ARTDEF_PG_object(PropertyGroup):
         name="Frames per Field", default=10, min=1, soft_max=100,
         description="Tracked scans: the replay action keys field p at frame "
                     "(p+1) x this, the rest pose at frame 0")
+    reduce: EnumProperty(name="Reduced Method", items=REDUCE_ITEMS, default='AUTO',
+                         description="Segment small patches of triangles instead of every "
+                                     "triangle (large scans)")
+    memory_budget: FloatProperty(name="Memory Budget", default=2.0, min=BUDGET_MIN,
+                                 soft_min=BUDGET_SOFT_MIN, soft_max=64.0, precision=2,
+                                 description=MEMORY_BUDGET_DESCRIPTION)
 
     # ---- what the last fit created (used by Clear Rig / re-fit) ----
     rig: PointerProperty(type=bpy.types.Object, name="Rig",
@@ -129,6 +149,9 @@ class ARTDEF_PG_object(PropertyGroup):
     fit_link_stats: CollectionProperty(type=ARTDEF_PG_link_stats)
     fit_link_reason: StringProperty(description="Why Auto Links chose this link count")
     fit_skin: StringProperty(name="Skin", description="Skin weights of the fit")
+    fit_notes: StringProperty(description="The core's notes on the fit, one a line (for example "
+                                          "why and how the reduced method was used)")
+    fit_reduced: BoolProperty(description="The fit used the reduced method on patches")
     show_link_stats: BoolProperty(name="Per Link", default=False,
                                   description="Show the fit quality of every link")
 

@@ -69,6 +69,10 @@ class ARTDEF_PT_main(bpy.types.Panel):
             col.prop(st, "skin")
         if tracked:
             col.prop(st, "frames_per_field")
+        col.prop(st, "reduce")
+        col.prop(st, "memory_budget")
+        if io.has_scan(mesh):
+            _draw_estimate(box, mesh, st)
         row = box.row(align=True)
         row.scale_y = 1.3
         op = row.operator("artdef.fit", icon='PLAY')
@@ -79,6 +83,7 @@ class ARTDEF_PT_main(bpy.types.Panel):
         op.max_links = st.max_links
         if ops.HAS_SKIN:
             op.skin = st.skin
+        op.reduce, op.memory_budget = st.reduce, st.memory_budget
         row = box.row(align=True)
         row.operator("artdef.preview_links", icon='COLOR').links = st.links
         row.operator("artdef.clear_rig", icon='TRASH')
@@ -103,6 +108,10 @@ class ARTDEF_PT_main(bpy.types.Panel):
             if st.fit_diagonal > 0:
                 col.label(text=f"Vertex residual: mean {_rel(st.fit_residual_mean, st)}, "
                                f"max {_rel(st.fit_residual_max, st)}")
+            if st.fit_notes:
+                for note in st.fit_notes.splitlines():
+                    for i, line in enumerate(textwrap.wrap(note, 44)):
+                        col.label(text=line, icon='INFO' if i == 0 else 'BLANK1')
             col.label(text=f"Time: {st.fit_seconds:.2f} s")
             if st.fit_timings:
                 for part in st.fit_timings.split(", "):
@@ -117,10 +126,51 @@ class ARTDEF_PT_main(bpy.types.Panel):
             if st.fit_summary:
                 sub = box.column(align=True)
                 sub.scale_y = 0.8
-                for line in st.fit_summary.splitlines()[:8]:
+                # its "note: ..." lines are shown above, with the figures
+                lines = [l for l in st.fit_summary.splitlines() if not l.startswith("note: ")]
+                for line in lines[:8]:
                     sub.label(text=line)
         elif rig.has_rig(obj):
             layout.label(text="Rig present (no summary)", icon='INFO')
+
+
+def _gb(nbytes):
+    gb = nbytes / ops.GB
+    if gb < 0.095:
+        return f"{gb:.2f}"
+    if gb < 9.5:
+        return f"{gb:.1f}"
+    return f"{gb:,.0f}"
+
+
+def _duration(seconds):
+    if seconds < 1.0:
+        return "under 1 s"
+    if seconds < 120.0:
+        return f"{seconds:.0f} s"
+    if seconds < 7200.0:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def _draw_estimate(layout, mesh, st):
+    """What a fit with these settings costs, from the counts only (no fit):
+    memory, time and the method (full, or reduced on about N patches)."""
+    info = io.scan_info(mesh)
+    est, _ = ops.method_plan(len(mesh.loop_triangles), info["fields"], len(mesh.vertices),
+                             info["kind"], st.reduce, st.memory_budget)
+    col = layout.column(align=True)
+    col.scale_y = 0.8
+    col.label(text=f"Estimate: about {_gb(est.memory_bytes)} GB, "
+                   f"{_duration(est.seconds)}", icon='TIME')
+    if est.reduced:
+        col.label(text=f"reduced method on about {est.units:,} patches", icon='BLANK1')
+    else:
+        col.label(text=f"full method on {est.triangles:,} triangles", icon='BLANK1')
+    if est.memory_bytes > st.memory_budget * ops.GB:
+        row = col.row()
+        row.alert = True
+        row.label(text="over the memory budget", icon='ERROR')
 
 
 def _rel(value, st):

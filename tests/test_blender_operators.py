@@ -1227,3 +1227,110 @@ def test_fit_auto_links(clean_scene, pkg, sample_files):
     # an explicit link count overrides the object's Auto Links setting
     assert bpy.ops.artdef.fit(links=2) == {'FINISHED'}
     assert pkg.ops.last_result(obj).n_links == 2 and not st.auto_links and st.fit_link_reason == ""
+
+
+# --------------------------------------------------------------------------
+# scale (issue 6): memory budget, reduced method, cost estimate, progress words
+# --------------------------------------------------------------------------
+
+def test_memory_budget_switches_to_reduced_method_and_says_so(clean_scene, pkg, sample_files,
+                                                              capfd):
+    obj = import_scan(sample_files["branching"])
+    st = obj.artdef
+    props = bpy.ops.artdef.fit.get_rna_type().properties
+    assert props["memory_budget"].default == 2.0 and props["memory_budget"].description
+    assert props["reduce"].default == 'AUTO' and props["reduce"].description
+    labels = [e[1] for e in draw_panel() if e[0] == "label"]
+    assert {("prop", "reduce"), ("prop", "memory_budget")} <= set(draw_panel())
+    assert any(l.startswith("Estimate: about ") for l in labels)
+    assert "full method on 1,072 triangles" in labels
+    # the default budget: the full method, no note
+    assert bpy.ops.artdef.fit(links=11) == {'FINISHED'}
+    assert pkg.ops.last_result(obj).notes == [] and st.fit_notes == "" and not st.fit_reduced
+    full_seg = pkg.ops._SEGMENTERS[obj.name][1]
+    assert not full_seg.reduced
+    capfd.readouterr()
+    # a tiny budget: the fit switches to the reduced method, says why, still makes 11 bones
+    assert bpy.ops.artdef.fit(links=11, memory_budget=0.001) == {'FINISHED'}
+    result = pkg.ops.last_result(obj)
+    assert result.n_links == 11 and len(st.rig.data.bones) == 11
+    assert any("reduced method" in n for n in result.notes)
+    assert "reduced method" in st.fit_notes and st.fit_reduced
+    assert st.memory_budget == pytest.approx(0.001) and st.reduce == 'AUTO'
+    out = capfd.readouterr()
+    assert "reduced method" in out.out + out.err  # the operator's INFO reports
+    seg = pkg.ops._SEGMENTERS[obj.name][1]
+    assert seg is not full_seg and seg.reduced  # the cache follows the settings
+    labels = [e[1] for e in draw_panel() if e[0] == "label"]
+    assert any("reduced method" in l for l in labels)                      # the fit's notes
+    assert any(l.startswith("reduced method on about ") for l in labels)   # the estimate
+    # Preview Links uses the object's settings: the cached reduced segmenter
+    assert bpy.ops.artdef.preview_links(links=11) == {'FINISHED'}
+    assert pkg.ops._SEGMENTERS[obj.name][1] is seg
+    # Reduced Method Off ignores the budget; back on the default budget: no note
+    assert bpy.ops.artdef.fit(links=11, reduce='OFF') == {'FINISHED'}
+    assert pkg.ops.last_result(obj).notes == [] and not pkg.ops._SEGMENTERS[obj.name][1].reduced
+    assert bpy.ops.artdef.fit(links=11, reduce='AUTO', memory_budget=2.0) == {'FINISHED'}
+    assert pkg.ops.last_result(obj).notes == [] and st.fit_notes == "" and not st.fit_reduced
+    assert not any("reduced method" in e[1] for e in draw_panel() if e[0] == "label")
+
+
+def test_estimate_follows_the_settings(pkg):
+    plan = pkg.ops.method_plan
+    est, arg = plan(1_000_000, 50, 500_000, "tracked", 'AUTO', 2.0)
+    assert est.reduced and arg is None and 0 < est.memory_bytes <= 2 * 2 ** 30
+    est, arg = plan(1_000_000, 50, 500_000, "tracked", 'OFF', 2.0)
+    assert not est.reduced and arg is False and est.memory_bytes > 1e12
+    est, arg = plan(1000, 12, 500, "tracked", 'ON', 2.0)
+    assert est.reduced and arg is True and est.units <= 1000
+    est, arg = plan(1000, 12, 500, "greens", 'AUTO', 2.0)
+    assert not est.reduced and arg is None
+
+
+def test_fit_progress_reads_as_words(pkg):
+    text = pkg.ops.stage_text
+    for stage in ("features", "distances", "cluster", "merge", "links", "pseudo"):
+        assert text(stage, 0.25).endswith(" 25%") and text(stage, 0.25) != f"{stage} 25%"
+    assert text("merge column 3", 0.5) == "merging pieces into links (load point 3) 50%"
+    assert text("joints", 0.0) == "joints, bones and skin weights"   # reported once: no 0%
+    assert text("done", 1.0) == "finishing" and text("start", 0.0) == "starting"
+    job = pkg.ops._FitJob(None, 3, "global", "robust", None, max_links=8)
+    job.progress("links", 0.5)
+    job.progress("merge", 0.2)
+    assert job.status_text() == "choosing the link count 50% (merging pieces into links 20%)"
+
+
+def test_fast_mesh_access_matches_blender_triangulation(clean_scene, pkg, sample_files):
+    """read_scan's array access (attributes instead of per-item RNA) is Blender's own data."""
+    import bmesh
+
+    def rna(mesh):
+        t = len(mesh.loop_triangles)
+        faces = np.empty(3 * t, dtype=np.int32)
+        mesh.loop_triangles.foreach_get("vertices", faces)
+        polys = np.empty(t, dtype=np.int32)
+        mesh.loop_triangles.foreach_get("polygon_index", polys)
+        co = np.empty(3 * len(mesh.vertices), dtype=np.float32)
+        mesh.vertices.foreach_get("co", co)
+        return faces.reshape(-1, 3), polys, co.reshape(-1, 3)
+
+    meshes = [import_scan(sample_files["branching"]).data]           # triangles only
+    bpy.ops.mesh.primitive_monkey_add()                                # quads and triangles
+    meshes.append(bpy.context.active_object.data)
+    bpy.ops.mesh.primitive_cylinder_add(vertices=9)                    # n-gon caps
+    meshes.append(bpy.context.active_object.data)
+    bm = bmesh.new()                                                   # triangles, faces reordered
+    bmesh.ops.create_icosphere(bm, subdivisions=2, radius=1.0)
+    bmesh.ops.triangulate(bm, faces=bm.faces[:])
+    bm.faces.sort(key=lambda f: -f.calc_center_median().z)
+    bm.faces.index_update()
+    ico = bpy.data.meshes.new("ico")
+    bm.to_mesh(ico)
+    bm.free()
+    meshes.append(ico)
+    for mesh in meshes:
+        faces, polys, co = rna(mesh)
+        fast_faces, fast_polys = pkg.io._triangles(mesh)
+        np.testing.assert_array_equal(fast_faces, faces, err_msg=mesh.name)
+        np.testing.assert_array_equal(fast_polys, polys, err_msg=mesh.name)
+        np.testing.assert_array_equal(pkg.io._positions(mesh, len(mesh.vertices)), co)
