@@ -29,8 +29,16 @@ class Estimate:
     def describe(self) -> str:
         how = (f"reduced method on about {self.units} patches" if self.reduced
                else f"full method on {self.triangles} triangles")
-        return (f"estimate: {how}, {self.fields} fields: about {self.memory_bytes / 2 ** 30:.2f} GB peak, "
+        return (f"estimate: {how}, {self.fields} fields: about {format_bytes(self.memory_bytes)} peak, "
                 f"{self.seconds:.0f} s")
+
+
+def format_bytes(n: float) -> str:
+    """'1.9 GB', '16 MB', '512 kB'."""
+    for unit, size in (("GB", 2 ** 30), ("MB", 2 ** 20), ("kB", 2 ** 10)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}" if unit == "GB" else f"{n / size:.0f} {unit}"
+    return f"{n:.0f} B"
 
 
 def full_memory(triangles: int, fields: int, vertices: int) -> float:

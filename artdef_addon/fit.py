@@ -22,7 +22,7 @@ from . import clustering, cost as _cost, joints as _joints, merge as _merge, mod
 from . import patches as _patches
 from .metric import field_features
 from .scan import Scan, ScanError, validate_scan
-from .skinning import blend_weights, refined_weights
+from .skinning import alternate, blend_weights
 
 MODES = ("global", "pseudo")
 MOTIONS = ("robust", "lsq")
@@ -145,8 +145,9 @@ class Segmenter:
         if reduce is None:
             reduce = est.reduced
             if reduce:
-                self.notes.append(f"the full method needs about {_cost.full_memory(Tv, scan.n_fields, scan.n_vertices) / 2 ** 30:.1f} GB "
-                                  f"(budget {budget / 2 ** 30:.1f} GB): using the reduced method on patches")
+                need = _cost.full_memory(Tv, scan.n_fields, scan.n_vertices)
+                self.notes.append(f"the full method needs about {_cost.format_bytes(need)} "
+                                  f"(budget {_cost.format_bytes(budget)}): using the reduced method on patches")
         self.reduced = bool(reduce)
         if not self.reduced:
             self.features = []
@@ -295,7 +296,8 @@ class Segmenter:
             t = np.stack([self.features[p].t[medoids[:, i]] for i, p in enumerate(all_fields)])
             labels = _merge.refine_seams(self.scan.vertices, self.scan.fields()[all_fields], self.faces,
                                          R, t, self.weights[all_fields], labels, self.tri_adjacency,
-                                         fixed=self.unit_tri[np.unique(medoids)])
+                                         fixed=self.unit_tri[np.unique(medoids)],
+                                         iterations=200 if self.reduced else 10)
             medoids = _merge.link_medoids(feats, self.weights[all_fields], labels[self.unit_tri], k)
         self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0
         return labels, medoids, all_fields
@@ -452,7 +454,11 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     weights = blend_weights(x0, faces, labels, L)
     Rf, tf = _model.forward_kinematics(parents, heads, frames, params)
     if skin == "refined":
-        weights = refined_weights(x0, fields, faces, labels, Rf, tf, weights)
+        # weights and link motions refined together; the pose parameters then follow the
+        # refined motions (bone offsets absorb what the joints do not explain)
+        weights, Rf, tf = alternate(x0, fields, faces, labels, Rf, tf, weights)
+        params = _model.params_from_motions(parents, heads, frames, grounded, Rf, tf)
+        Rf, tf = _model.forward_kinematics(parents, heads, frames, params)
     residual = np.zeros((P, N, 3))
     art_err = np.zeros(P)
     tot_err = np.zeros(P)
