@@ -135,13 +135,22 @@ def _active_mesh(context):
     return obj if obj is not None and obj.type == 'MESH' else None
 
 
-def _scan_mesh_poll(cls, context):
+def mesh_in_object_mode(cls, context):
+    """The active mesh object if the operator can run on it (Object Mode), else None with the
+    reason set as the poll message."""
     obj = _active_mesh(context)
     if obj is None:
         cls.poll_message_set("Select a mesh object")
-        return False
+        return None
     if context.mode != 'OBJECT':
         cls.poll_message_set("Switch to Object Mode")
+        return None
+    return obj
+
+
+def _scan_mesh_poll(cls, context):
+    obj = mesh_in_object_mode(cls, context)
+    if obj is None:
         return False
     if not io.has_scan(obj.data):
         cls.poll_message_set("The active mesh carries no ArtDef scan")
@@ -222,12 +231,8 @@ class ARTDEF_OT_fields_from_shape_keys(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        obj = _active_mesh(context)
+        obj = mesh_in_object_mode(cls, context)
         if obj is None:
-            cls.poll_message_set("Select a mesh object")
-            return False
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
             return False
         keys = obj.data.shape_keys
         if keys is None or len(keys.key_blocks) < 2:
@@ -754,12 +759,8 @@ class ARTDEF_OT_clear_rig(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        obj = _active_mesh(context)
+        obj = mesh_in_object_mode(cls, context)
         if obj is None:
-            cls.poll_message_set("Select a mesh object")
-            return False
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
             return False
         if not rig.has_rig(obj):
             cls.poll_message_set("The active mesh has no ArtDef rig")

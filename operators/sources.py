@@ -25,6 +25,7 @@ from bpy_extras.io_utils import ImportHelper
 
 from ..artdef_addon import scan as _scan
 from . import io, rig, sequence
+from .ops import mesh_in_object_mode
 
 #: Modifiers that change the topology (Blender's "Generate" group).  They are
 #: switched off while sampling (and switched back on after), so the sampled
@@ -207,14 +208,7 @@ class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        obj = context.active_object
-        if obj is None or obj.type != 'MESH':
-            cls.poll_message_set("Select a mesh object")
-            return False
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
-            return False
-        return True
+        return mesh_in_object_mode(cls, context) is not None
 
     def invoke(self, context, event):
         props = self.properties
