@@ -176,6 +176,29 @@ def load_sets(data_dir: str, fresh_fields: int, bone_count: int, max_tri: int | 
 
 
 # --------------------------------------------------------------------------- main comparison
+def _auto_links_fn():
+    """The core's link-count chooser (``--links auto``), or None when this core has none."""
+    try:
+        from artdef_addon.linkcount import choose_links
+    except ImportError:
+        return None
+
+    def run(seg, L):
+        # the CLI's bound (30), raised where the truth has more links, so the answer can reach it
+        m = max(30, int(np.ceil(1.5 * L)))
+        t0 = time.perf_counter()
+        try:
+            choice = choose_links(seg, max_links=m)
+        except Exception as exc:  # noqa: BLE001
+            return dict(error=f"{type(exc).__name__}: {exc}")
+        return dict(links=int(choice.links), seconds=time.perf_counter() - t0, max_links=m)
+    return run
+
+
+auto_links = _auto_links_fn()
+AUTO_MAX_TRI = 6000  # the link-count curve refits up to max(30, 1.5 L) link counts: minutes on big scans
+
+
 def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
     """Both methods on every set; times are medians of ``repeats`` runs for sets of at most ``cheap``
     triangles (one run above), every run a whole fit from scratch."""
@@ -208,13 +231,16 @@ def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
                 continue
             check = abs(err - res.articulation_error_percent)
             owning = len(np.unique(res.face_labels))
+            reduced = any(str(n).startswith("reduced method") for n in (getattr(res, "notes", None) or []))
             r = dict(seconds=secs, error=err, links=res.n_links, owning=owning, check=check,
-                     reported=res.articulation_error_percent)
+                     reported=res.articulation_error_percent, reduced=reduced)
             if truth is not None:
                 r["ari"] = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
                 je = joint_errors(truth, res, diag)
                 r["joints"] = je
             row[label] = r
+        if auto_links is not None and seg is not None and AUTO_MAX_TRI and scan.n_faces <= AUTO_MAX_TRI:
+            row["auto"] = auto_links(seg, L)
         if DEMBONES:
             try:
                 runs = [run_dembones(x0, scan.faces, X, L, nnz, iters) for _ in range(reps)]
@@ -244,17 +270,30 @@ def _fmt_joints(je):
     return s + (f", {miss} merged" if miss else "")
 
 
+def _fmt_auto(row) -> str:
+    au = row.get("auto")
+    if not au:
+        return "n/a"
+    if "links" not in au:
+        return "failed"
+    off = 100.0 * (au["links"] - row["L"]) / row["L"]
+    return f"{au['links']} ({off:+.0f}%)"
+
+
 def line(row, variants) -> str:
     parts = [f"{row['name']}: T={row['T']} P={row['P']} L={row['L']}"]
     for label, _ in variants:
         r = row.get(label)
         if r:
-            s = f"{label} {r['seconds']:.2f}s err {r['error']:.2f}% links {r['owning']}"
+            s = f"{label}{' (reduced method)' if r.get('reduced') else ''} {r['seconds']:.2f}s err {r['error']:.2f}% links {r['owning']}"
             if "ari" in r:
                 s += f" ARI {r['ari']:.3f} joints {_fmt_joints(r['joints'])}"
             if r["check"] > 1e-6:
                 s += f" (the result reports {r['reported']:.4f}%)"
             parts.append(s)
+    au = row.get("auto")
+    if au:
+        parts.append(f"links auto {au['links']} ({au['seconds']:.1f}s)" if "links" in au else f"links auto failed: {au['error']}")
     db = row.get("dembones")
     if db:
         s = f"Dem Bones {db['seconds']:.2f}s err {db['error']:.2f}% bones {db['bones']} (owning faces {db['owning']})"
@@ -274,7 +313,9 @@ def tables(rows, variants) -> str:
            "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     for row in rows:
         db = row.get("dembones")
-        cells = [row["name"].replace("_", "\\_"), f"{row['T']:,}", str(row["P"]), str(row["L"])]
+        r0 = row.get(labels[0])
+        mark = " (reduced method)" if r0 and r0.get("reduced") else ""
+        cells = [row["name"].replace("_", "\\_") + mark, f"{row['T']:,}", str(row["P"]), str(row["L"])]
         cells += [f"{row[lb]['seconds']:.2f}" if row.get(lb) else "failed" for lb in labels]
         cells += [f"{db['seconds']:.2f}" if db else "n/a"]
         cells += [f"{row[lb]['error']:.2f}" if row.get(lb) else "failed" for lb in labels]
@@ -284,9 +325,9 @@ def tables(rows, variants) -> str:
         out.append("| " + " | ".join(cells) + " |")
     lb0 = labels[0]
     out += ["", "### Structure (scans with a true skeleton)", "",
-            "| scan | true links | artdef links | Dem Bones bones (owning faces) | ARI artdef | ARI Dem Bones "
+            "| scan | true links | artdef links | links auto | Dem Bones bones (owning faces) | ARI artdef | ARI Dem Bones "
             "| artdef joint error, median / max % of diagonal (≤ 2%) |",
-            "|---|---:|---:|---:|---:|---:|---|"]
+            "|---|---:|---:|---:|---:|---:|---:|---|"]
     for row in rows:
         if not row["truth"]:
             continue
@@ -295,6 +336,7 @@ def tables(rows, variants) -> str:
         out.append("| " + " | ".join([
             row["name"].replace("_", "\\_"), str(row["L"]),
             str(r["owning"]) if r else "failed",
+            _fmt_auto(row),
             f"{db['bones']} ({db['owning']})" if db else "n/a",
             f"{r['ari']:.3f}" if r else "—",
             f"{db['ari']:.3f}" if db else "n/a",
@@ -343,6 +385,29 @@ def collapse_test(n_sets, nnz, iters, ari_ok=0.95):
     return "\n".join(md)
 
 
+def auto_samples():
+    """``--links auto`` on the generated samples, where it must land exactly on the true count."""
+    sys.path.insert(0, HERE)
+    from generate import branching_scan
+    cases = [("rod, 3 fields", lambda: samples.rod(n_fields=3)),
+             ("rod, 8 fields", lambda: samples.rod(n_fields=8, seed=5)),
+             ("branching, 12 fields", lambda: samples.branching()),
+             ("branching, 2% noise + bulges", lambda: samples.branching(noise=0.02, bulges=True)),
+             ("branching, disconnected", lambda: samples.branching(disconnected=True)),
+             ("generated branching (1.1k triangles, 10 random LBS poses)", lambda: branching_scan(1000, 10, seed=3))]
+    md = ["### Link count chosen automatically on the generated samples", "",
+          "| sample | true links | links auto | seconds |", "|---|---:|---:|---:|"]
+    for name, make in cases:
+        scan, truth = make()
+        L = int(len(np.unique(truth["face_labels"])))
+        seg = F.Segmenter(scan)
+        au = auto_links(seg, L)
+        cell = str(au["links"]) if "links" in au else "failed: " + au["error"]
+        md.append(f"| {name} | {L} | {cell} | {au.get('seconds', float('nan')):.1f} |")
+        print(f"  {name}: true {L}, auto {cell}", flush=True)
+    return "\n".join(md)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description="artdef vs py-dem-bones on the shared tracked scans.")
     ap.add_argument("--data", default=os.path.join(ROOT, "..", "shared", "data"))
@@ -356,6 +421,9 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3, help="timing repeats (median) for scans of ≤ 5k triangles")
     ap.add_argument("--only", help="comma-separated substrings: run only the scans whose name contains one")
     ap.add_argument("--skip-rod", action="store_true")
+    ap.add_argument("--skip-auto-samples", action="store_true")
+    ap.add_argument("--auto-max-triangles", type=int, default=6000,
+                    help="run --links auto only on scans up to this size (0: never)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "compare_dembones.md"))
     a = ap.parse_args(argv)
     t_all = time.perf_counter()
@@ -363,6 +431,8 @@ def main(argv=None):
     env = (f"{platform.machine()}, {cores} cores, Python {platform.python_version()}, numpy {np.__version__}; "
            f"{DEMBONES or 'py-dem-bones NOT available: ' + DEMBONES_ERROR}. Shared machine: timings are noisy.")
     print(env)
+    global AUTO_MAX_TRI
+    AUTO_MAX_TRI = a.auto_max_triangles
     variants = fit_variants()
     print("artdef fits:", ", ".join(f"{lb} {kw or ''}" for lb, kw in variants))
     sets = load_sets(a.data, a.fresh_fields, a.bone_count, 10000 if a.quick else None, a.seed)
@@ -374,9 +444,16 @@ def main(argv=None):
           f"Same link/bone count for both (true links; {a.bone_count} for dembones\\_bone, as in Dem Bones' example). "
           f"Dem Bones: `solve_skinning`, {a.nnz} influences per vertex, {a.iters} iterations. Error: articulation only, "
           "100·‖X−X̂‖/‖X−X̄‖ (Karni–Gotsman). Fresh poses: 20 random LBS poses of the true rig (≤ 45° a bone). "
-          f"Times: median of {a.repeats} whole runs for scans of ≤ 5k triangles, one run above.", "",
+          f"Times: median of {a.repeats} whole runs for scans of ≤ 5k triangles, one run above. "
+          f"Links auto: the core's chooser (`linkcount.choose_links`, up to max(30, 1.5·true) links) on scans of "
+          f"≤ {a.auto_max_triangles} triangles; the % is its distance from the true count.", "",
           tables(rows, variants), ""]
     print("\n".join(md[6:]))
+    if auto_links is not None and not a.skip_auto_samples:
+        print("links auto on the generated samples:", flush=True)
+        au_md = auto_samples()
+        md += [au_md, ""]
+        print(au_md)
     if not a.skip_rod:
         print("never collapses (three-link rod):", flush=True)
         rod_md = collapse_test(a.rod_sets, a.nnz, a.iters)
