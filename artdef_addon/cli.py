@@ -51,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--bulges", action="store_true", help="branching: add local bulges")
     s.add_argument("--disconnected", action="store_true", help="branching: arms as separate pieces")
     s.add_argument("--seed", type=int, help="random seed")
-    i = sub.add_parser("info", help="describe a scan or result file")
+    i = sub.add_parser("info", help="describe a scan or result file (and estimate a scan's fit)")
     i.add_argument("path")
     return p
 
@@ -87,6 +87,16 @@ def _cmd_sample(a) -> int:
 def _cmd_info(a) -> int:
     from . import scan as S
     try:
+        with np.load(a.path, allow_pickle=False) as z:
+            is_result = "face_labels" in z.files
+    except (OSError, ValueError, EOFError) as exc:
+        raise _BadInput(f"cannot read {a.path}: {exc}") from None
+    if is_result:
+        from . import fit as F
+        print(f"{a.path}: fit result")
+        print(F.load_result(a.path).summary())
+        return 0
+    try:
         sc = S.load_scan(a.path)
     except S.ScanError as exc:
         raise _BadInput(str(exc)) from None
@@ -117,6 +127,9 @@ def _cmd_fit(a) -> int:
     except S.ScanError as exc:
         raise _BadInput(str(exc)) from None
     t_load = time.perf_counter() - t0
+    if (a.blend or a.glb or a.png) and a.strategy != "auto":
+        raise _BadInput("--strategy cannot be combined with --blend/--glb/--png: the Blender fit uses "
+                        "strategy auto")
     auto = str(a.links).strip().lower() == "auto"
     if not auto:
         try:
@@ -124,26 +137,35 @@ def _cmd_fit(a) -> int:
         except ValueError:
             raise _BadInput(f"--links must be a whole number or 'auto', got {a.links!r}") from None
     try:
+        t_fit = time.perf_counter()
         reduce = {"auto": None, "on": True, "off": False}[a.reduce]
         seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
         if not a.quiet:
             print(seg.estimate.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
+        t_auto = 0.0
         if auto:
             from .linkcount import choose_links
+            t0 = time.perf_counter()
             choice = choose_links(seg, max_links=a.max_links)
             links = choice.links
+            t_auto = time.perf_counter() - t0
         result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
                        strategy=a.strategy, skin=a.skin)
     except S.ScanError as exc:
         raise _BadInput(str(exc)) from None
-    result.timings = {"load": t_load, **result.timings}
+    timings = {"load": t_load, **result.timings}
+    if auto:
+        timings["links auto"] = t_auto
+    timings["total"] = time.perf_counter() - t_fit
+    result.timings = timings
     if a.output:
         F.save_result(a.output, result)
     written = {}
     if a.blend or a.glb or a.png:
         from . import headless
         kwargs = dict(links=int(links), mode=a.mode.upper(), motion=a.motion.upper(),
-                      p_max=float(a.p_max or 0.0))
+                      p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
+                      memory_budget=float(a.memory_budget))
         written = headless.build_outputs(a.scan, kwargs, a.blend, a.glb, a.png)
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
