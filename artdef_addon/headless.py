@@ -193,13 +193,66 @@ def save_blend(path: str) -> str:
     return path
 
 
+def _driven_without_action(armature) -> bool:
+    ad = armature.animation_data
+    return ad is not None and ad.action is None and len(ad.drivers) > 0
+
+
+def _bake_driven_pose(bpy, armature):
+    """Key the driven pose bones (a Green's rig: bones driven by the load
+    empties, which the load sweep animates) at every frame of the scene into a
+    new action on the armature, so Blender's glTF exporter samples the joints
+    (it exports an armature's animation only from its action; a driven shape
+    key is baked inside that armature action too).  The drivers stay: they
+    give the same values the keys hold.  Returns what :func:`_unbake` needs."""
+    scene = bpy.context.scene
+    ad = armature.animation_data
+    saved = (ad.action, scene.frame_current)
+    action = bpy.data.actions.new(f"{armature.name}_glTF_bake")
+    ad.action = action
+    bones = [pb for pb in armature.pose.bones if pb.bone.use_deform]
+    for frame in range(scene.frame_start, scene.frame_end + 1):
+        scene.frame_set(frame)
+        for pb in bones:
+            pb.keyframe_insert("rotation_euler", frame=frame, group=pb.name)
+            pb.keyframe_insert("location", frame=frame, group=pb.name)
+    return armature, action, saved
+
+
+def _unbake(bpy, baked):
+    armature, action, (old_action, frame) = baked
+    armature.animation_data.action = old_action
+    bpy.data.actions.remove(action)
+    bpy.context.scene.frame_set(frame)
+
+
 def export_glb(path: str, mesh, armature) -> str:
     """Skinned mesh (one joint per deforming bone, inverse bind matrices),
-    shape keys as morph targets, and the scene's animation, as .glb."""
+    shape keys as morph targets, and the scene's animation, as .glb.
+
+    A rig driven by load empties (Green's scans) has no action of its own:
+    its driven pose is baked into a temporary action for the export only
+    (removed again afterwards; the live drivers are never touched), so the
+    glTF animation moves the joints and the morph weights through the load
+    sweep."""
     bpy = _bpy()
     path = _abs(path)
+    baked = None
     if armature is not None:
         _parent_keep_transform(mesh, armature)
+        if _driven_without_action(armature):
+            baked = _bake_driven_pose(bpy, armature)
+    try:
+        _export_gltf(bpy, path, mesh, armature)
+    finally:
+        if baked is not None:
+            _unbake(bpy, baked)
+    if not os.path.isfile(path):
+        raise RuntimeError(f"glTF exporter wrote nothing to {path}")
+    return path
+
+
+def _export_gltf(bpy, path, mesh, armature):
     with bpy.context.temp_override(active_object=mesh, object=mesh,
                                    selected_objects=[o for o in (mesh, armature) if o]):
         bpy.ops.export_scene.gltf(
@@ -228,9 +281,6 @@ def export_glb(path: str, mesh, armature) -> str:
             export_lights=False,
             export_extras=False,
         )
-    if not os.path.isfile(path):
-        raise RuntimeError(f"glTF exporter wrote nothing to {path}")
-    return path
 
 
 # --------------------------------------------------------------------------
@@ -308,8 +358,9 @@ def _bounds_world(obj, depsgraph):
 
 
 def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
-    """Workbench render of the first fitted pose (frame_start + 10: a tracked scan's replay keys
-    field 0 there with the default 10 frames per field; the rest pose is frame 0): the mesh coloured by its
+    """Workbench render of the first fitted pose (frame_start + 10: with the default 10 frames per
+    field, a tracked scan's replay keys field 0 there and a Green's scan's load sweep has load 0
+    at the probe load along x; the rest pose is frame 0): the mesh coloured by its
     active colour attribute (the fit's link colours), the deforming bones, as
     posed, drawn as octahedral sticks in front of it (armatures are overlays,
     which renders never show)."""

@@ -403,8 +403,10 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                             description="Pseudo mode: the load point whose model becomes the rig")
     frames_per_field: IntProperty(name="Frames per Field", default=10, min=1, soft_max=100,
                                   description="Tracked scans: the replay action keys field p at "
-                                              "frame (p+1) x this and the rest pose at frame 0; "
-                                              "the scene's frame range is set to cover it")
+                                              "frame (p+1) x this and the rest pose at frame 0. "
+                                              "Green's scans: the load sweep takes 2 x this frames "
+                                              "per load point and axis (0, probe load, 0). The "
+                                              "scene's frame range is set to cover it")
     auto_links: BoolProperty(name="Auto Links", default=False,
                              description="Choose the number of links from the data (where the "
                                          "articulation error stops dropping), up to Max Links; "
@@ -562,8 +564,13 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                 setattr(rec, key, value)
         if st.set_frame_range:
             start, end = st.replay_frame_range
-            st.fit_replay = (f"replay: field p at frame (p+1)x{self.frames_per_field}, "
-                             f"scene frames set to {start}-{end}")
+            if job.scan.kind == "greens":
+                st.fit_replay = (f"load sweep: load k along axis d at the probe load at frame "
+                                 f"(2(3k+d)+1)x{self.frames_per_field}, scene frames set to "
+                                 f"{start}-{end}")
+            else:
+                st.fit_replay = (f"replay: field p at frame (p+1)x{self.frames_per_field}, "
+                                 f"scene frames set to {start}-{end}")
         else:
             st.fit_replay = ""
         try:

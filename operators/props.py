@@ -91,7 +91,8 @@ class ARTDEF_PG_object(PropertyGroup):
     frames_per_field: IntProperty(
         name="Frames per Field", default=10, min=1, soft_max=100,
         description="Tracked scans: the replay action keys field p at frame "
-                    "(p+1) x this, the rest pose at frame 0")
+                    "(p+1) x this, the rest pose at frame 0. Green's scans: the load sweep "
+                    "takes 2 x this frames per load point and axis (0, probe load, 0)")
     reduce: EnumProperty(name="Reduced Method", items=REDUCE_ITEMS, default='AUTO',
                          description="Segment small patches of triangles instead of every "
                                      "triangle (large scans)")
@@ -145,7 +146,7 @@ class ARTDEF_PG_object(PropertyGroup):
     fit_residual_mean: FloatProperty(name="Mean vertex residual", precision=6)
     fit_diagonal: FloatProperty(name="Bounding-box diagonal", precision=6,
                                 description="Scale of the scan, to read the errors against")
-    fit_replay: StringProperty(description="Frames of the replay action (tracked scans)")
+    fit_replay: StringProperty(description="Frames of the replay action (tracked scans) or of the load sweep (Green's scans)")
     fit_link_stats: CollectionProperty(type=ARTDEF_PG_link_stats)
     fit_link_reason: StringProperty(description="Why Auto Links chose this link count")
     fit_skin: StringProperty(name="Skin", description="Skin weights of the fit")

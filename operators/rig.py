@@ -15,9 +15,12 @@ re-fit remove exactly this:
   mesh had none);
 * Green's scans: load empties ``artdef_load_K`` (children of the armature)
   whose ``location`` is the load vector, with drivers on the bones and the
-  shape keys; tracked scans: actions replaying the input fields, field p at
-  frame (p+1)·frames_per_field (frame 0 = rest), and the scene's frame range
-  set to cover it (restored by Clear Rig if still unchanged);
+  shape keys, and a load-sweep action per empty: load k along axis d (field
+  c = 3k+d) rises from 0 to the probe load p̂ and back, rest at frame
+  2c·frames_per_field, +p̂ at (2c+1)·frames_per_field; tracked scans: actions
+  replaying the input fields, field p at frame (p+1)·frames_per_field (frame
+  0 = rest).  Either way the scene's frame range is set to cover the
+  animation (restored by Clear Rig if still unchanged);
 * the face colour attribute ``artdef_links`` (active), the per-vertex
   articulation residual ``artdef_residual`` (FLOAT, POINT) and its colours
   ``artdef_residual_color`` (FLOAT_COLOR, POINT, blue = 0 → red = largest).
@@ -176,6 +179,20 @@ def _key_curve(fcurve, frames, values):
 # drivers
 # --------------------------------------------------------------------------
 
+def _driver_fcurve(fcurve):
+    """``fcurve`` with no keyframes, so its value is the driver's value itself.
+
+    ``driver_add()`` gives the F-Curve two keyframes (0, 0) and (1, 1); with
+    them Blender snaps a driver value within about 1e-4 of a key to the key
+    (measured: 8.3e-5 became 0 and 1e-4 became 0), which zeroes small bone
+    angles and shape key values at small loads.
+    """
+    points = fcurve.keyframe_points
+    while len(points):
+        points.remove(points[len(points) - 1], fast=True)
+    return fcurve
+
+
 def _num(x):
     return "%.9g" % float(x)
 
@@ -224,7 +241,8 @@ def _drive_linear(owner, path, index, coeffs, empties, arm_obj, tag):
         _add_load_vars(driver, empties, [(c // 3, c % 3) for c in cs])
         driver.expression = _join(_linear_terms([coeffs[c] for c in cs], [names[c] for c in cs]))
 
-    fcurve = owner.driver_add(path, index) if index is not None else owner.driver_add(path)
+    fcurve = _driver_fcurve(owner.driver_add(path, index) if index is not None
+                            else owner.driver_add(path))
     if len(chunks) == 1:
         fill(fcurve.driver, chunks[0])
         return [fcurve.driver]
@@ -233,7 +251,7 @@ def _drive_linear(owner, path, index, coeffs, empties, arm_obj, tag):
     for i, cs in enumerate(chunks):
         prop = f"artdef_sum_{tag}_{i}"
         arm_obj[prop] = 0.0
-        sub = arm_obj.driver_add(f'["{prop}"]')
+        sub = _driver_fcurve(arm_obj.driver_add(f'["{prop}"]'))
         fill(sub.driver, cs)
         drivers.append(sub.driver)
         var = fcurve.driver.variables.new()
@@ -560,22 +578,60 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
     # 4. link colours
     write_link_colours(mesh, result.face_labels, tri_polygons)
 
-    # 5. load controls or replay
+    # 5. load controls (and their sweep) or replay
     if kind == "greens" and result.kappa is not None:
-        _build_load_controls(obj, arm, result, bone_names, key_names, load_names)
+        empties = _build_load_controls(obj, arm, result, bone_names, key_names, load_names)
+        end = _build_load_sweep(empties, float(result.probe_load), frames_per_field)
     else:
         end = _build_replay(obj, arm, result, bone_names, key_names, frames_per_field)
-        scene = context.scene
-        st.old_frame_range = (scene.frame_start, scene.frame_end)
-        if end > scene.frame_start:
-            scene.frame_end = end  # set the end first: frame_start may not pass frame_end
-            scene.frame_start = 0
-        else:
-            scene.frame_start = 0
-            scene.frame_end = end
-        st.replay_frame_range = (scene.frame_start, scene.frame_end)
-        st.set_frame_range = True
+    _set_frame_range(st, context.scene, end)
     return arm
+
+
+def _set_frame_range(st, scene, end):
+    """Scene frames 0..end (recorded, so Clear Rig can put the old range back)."""
+    st.old_frame_range = (scene.frame_start, scene.frame_end)
+    if end > scene.frame_start:
+        scene.frame_end = end  # set the end first: frame_start may not pass frame_end
+        scene.frame_start = 0
+    else:
+        scene.frame_start = 0
+        scene.frame_end = end
+    st.replay_frame_range = (scene.frame_start, scene.frame_end)
+    st.set_frame_range = True
+
+
+def sweep_frame(c, frames_per_field=10):
+    """Frame at which the load sweep holds field c = 3k+d: load k = p̂ along axis d."""
+    return (2 * int(c) + 1) * max(int(frames_per_field), 1)
+
+
+def _build_load_sweep(empties, probe_load, frames_per_field=10):
+    """One action per load empty sweeping its load along x, y, z in turn.
+
+    Field c = 3k+d (empty k, axis d): location[d] is 0 at frame 2c·F, the probe
+    load p̂ at (2c+1)·F and 0 again at (2c+2)·F (F = frames_per_field), so
+    playing the scene shows every scanned load case once, one after the other,
+    and any frame in between is a smaller load of the same case.  Returns the
+    last frame.
+    """
+    step = max(int(frames_per_field), 1)
+    n = 3 * len(empties)
+    end = 2 * n * step
+    for k, emp in enumerate(empties):
+        action, new_fcurve = _new_action(emp, f"{emp.name}_sweep")
+        action["artdef_made"] = True
+        action.use_frame_range = True
+        action.frame_start, action.frame_end = 0, end
+        for d in range(3):
+            c = 3 * k + d
+            frames = [0.0, 2 * c * step, (2 * c + 1) * step, (2 * c + 2) * step, end]
+            values = [0.0, 0.0, probe_load, 0.0, 0.0]
+            # drop repeated frames (first and last case), keep the order
+            keep = [i for i in range(len(frames)) if i == 0 or frames[i] != frames[i - 1]]
+            _key_curve(new_fcurve("location", d, "Load Sweep"),
+                       [frames[i] for i in keep], [values[i] for i in keep])
+    return end
 
 
 def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
@@ -601,11 +657,12 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
     p_max = None if result.p_max is None else float(result.p_max)
     for c, kname in enumerate(key_names):
         k, d = divmod(c, 3)
-        fc = keys.driver_add(f'key_blocks["{kname}"].value')
+        fc = _driver_fcurve(keys.driver_add(f'key_blocks["{kname}"].value'))
         drv = fc.driver
         drv.type = 'SCRIPTED'
         _add_load_vars(drv, empties, [(k, 0), (k, 1), (k, 2)])
         drv.expression = shape_value_expression(k, d, probe, p_max)
+    return empties
 
 
 def _build_replay(obj, arm, result, bone_names, key_names, frames_per_field=10):

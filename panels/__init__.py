@@ -64,10 +64,9 @@ class ARTDEF_PT_main(bpy.types.Panel):
             col.prop(st, "load_index")
         col.prop(st, "motion")
         col.prop(st, "p_max")
-        tracked = io.has_scan(mesh) and io.scan_info(mesh)["kind"] == "tracked"
         if ops.HAS_SKIN:
             col.prop(st, "skin")
-        if tracked:
+        if io.has_scan(mesh):
             col.prop(st, "frames_per_field")
         col.prop(st, "reduce")
         col.prop(st, "memory_budget")

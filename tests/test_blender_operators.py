@@ -263,6 +263,8 @@ def assert_drivers_simple(obj):
     for fc in drivers:
         d = fc.driver
         assert d.is_valid, fc.data_path
+        # no (0,0),(1,1) keys: with them Blender snaps values near 0 or 1 to the key
+        assert len(fc.keyframe_points) == 0, fc.data_path
         if d.type == 'SCRIPTED':
             assert d.is_simple_expression, (fc.data_path, d.expression)
 
@@ -280,6 +282,7 @@ def test_greens_loads_drive_rig_like_the_model(clean_scene, pkg, sample_files, m
     assert bpy.ops.artdef.fit(links=3, p_max=p_max) == {'FINISHED'}
     arm, result = check_rig(pkg, obj, 3, ref.n_fields)
     assert (result.p_max is None) == (p_max == 0.0)
+    bpy.context.scene.frame_set(0)  # the load sweep's rest frame: every load 0
     m = len(ref.load_vertices)
     for k in range(m):
         emp = bpy.data.objects[f"artdef_load_{k}"]
@@ -676,14 +679,66 @@ def test_replay_frame_range_is_set_and_restored(clean_scene, sample_files):
     assert (scene.frame_start, scene.frame_end) == (0, 77)
 
 
-def test_greens_fit_keeps_frame_range(clean_scene, sample_files):
+def test_greens_load_sweep_sets_and_restores_frame_range(clean_scene, sample_files):
     scene = bpy.context.scene
     scene.frame_start, scene.frame_end = 3, 40
-    import_scan(sample_files["greens_rod"])
-    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
-    assert (scene.frame_start, scene.frame_end) == (3, 40)  # no replay action
-    assert bpy.context.active_object.artdef.fit_replay == ""
-    assert "artdef_residual" in bpy.context.active_object.data.attributes
+    obj = import_scan(sample_files["greens_rod"])
+    m = obj.data["artdef_n_loads"]
+    assert bpy.ops.artdef.fit(links=3, frames_per_field=4) == {'FINISHED'}
+    # load k along axis d (field c = 3k+d): 0 at 2c*F, probe load at (2c+1)*F, 0 at (2c+2)*F
+    assert (scene.frame_start, scene.frame_end) == (0, 2 * 3 * m * 4)
+    assert obj.artdef.fit_replay.startswith("load sweep")
+    assert "artdef_residual" in obj.data.attributes
+    actions = [bpy.data.objects[f"artdef_load_{k}"].animation_data.action for k in range(m)]
+    assert all(a is not None and a.get("artdef_made") for a in actions)
+    assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert (scene.frame_start, scene.frame_end) == (3, 40)
+    assert not any(a.name.endswith("_sweep") for a in bpy.data.actions)
+
+
+@pytest.mark.parametrize("p_max", [0.0, 3.0], ids=["linear", "hardening"])
+def test_greens_load_sweep_shows_each_load_case(clean_scene, pkg, sample_files, p_max):
+    """At the sweep's peak frame of load k along axis d the rig is the model under
+    that probe load alone; half-way up, under half of it."""
+    ref = pkg.scan.load_scan(sample_files["greens_rod"])
+    obj = import_scan(sample_files["greens_rod"])
+    rest = rest_positions(obj)
+    assert bpy.ops.artdef.fit(links=3, p_max=p_max) == {'FINISHED'}
+    result = pkg.ops.last_result(obj)
+    scene = bpy.context.scene
+    m, probe = len(ref.load_vertices), float(ref.probe_load)
+    for c in range(3 * m):
+        k, d = divmod(c, 3)
+        peak = pkg.rig.sweep_frame(c, FPF)
+        full = np.zeros((m, 3))
+        full[k, d] = probe
+        scale = np.abs(pkg.model.evaluate_loads(result, rest, full) - rest).max()
+        for frame, amount in ((peak, 1.0), (peak - FPF // 2, 0.5), (peak + FPF, 0.0)):
+            scene.frame_set(frame)
+            loads = amount * full
+            got = np.array([bpy.data.objects[f"artdef_load_{j}"].location for j in range(m)])
+            np.testing.assert_allclose(got, loads, atol=1e-6 * probe)
+            x = evaluated_positions(obj)
+            want = pkg.model.evaluate_loads(result, rest, loads)
+            err = np.abs(x - want).max() / scale
+            assert err <= REL_TOL, (c, frame, err)
+        if p_max == 0.0:
+            # linear: the peak is the scan's own field (articulation + residual key)
+            scene.frame_set(peak)
+            field = probe * ref.greens[:, c].reshape(-1, 3)
+            x = evaluated_positions(obj)
+            assert np.abs(x - rest - field).max() <= REL_TOL * np.abs(field).max()
+
+
+def test_pseudo_mode_sweeps_its_one_load_point(clean_scene, pkg, sample_files):
+    obj = import_scan(sample_files["greens_rod"])
+    assert bpy.ops.artdef.fit(links=3, mode='PSEUDO', load_index=2) == {'FINISHED'}
+    scene = bpy.context.scene
+    assert (scene.frame_start, scene.frame_end) == (0, 2 * 3 * FPF)
+    emp = bpy.data.objects["artdef_load_2"]
+    scene.frame_set(pkg.rig.sweep_frame(1, FPF))  # the empty's axis y
+    np.testing.assert_allclose(np.array(emp.location), [0.0, float(obj.data["artdef_probe_load"]), 0.0],
+                               atol=1e-6)
 
 
 # --------------------------------------------------------------------------
