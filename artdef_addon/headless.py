@@ -477,16 +477,41 @@ def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
 # Entry point used by artdef_addon.cli
 # --------------------------------------------------------------------------
 
+def fit_option_names() -> list[str]:
+    """The keyword arguments ``bpy.ops.artdef.fit`` accepts (its RNA properties)."""
+    bpy = _bpy()
+    props = bpy.ops.artdef.fit.get_rna_type().properties
+    return [p.identifier for p in props if p.identifier != "rna_type"]
+
+
+def fit_options(fit_kwargs: dict) -> dict:
+    """``fit_kwargs`` without the ``None`` values (the operator's defaults then
+    apply); RuntimeError naming the unknown keys and the accepted ones if a key
+    is not a property of ``bpy.ops.artdef.fit``."""
+    names = fit_option_names()
+    kwargs = {k: v for k, v in dict(fit_kwargs or {}).items() if v is not None}
+    unknown = sorted(k for k in kwargs if k not in names)
+    if unknown:
+        raise RuntimeError(f"artdef.fit has no option {', '.join(map(repr, unknown))} "
+                           f"(it accepts: {', '.join(sorted(names))})")
+    return kwargs
+
+
 def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
                   glb: str | None, png: str | None) -> dict:
     """Fit ``scan_path`` with ``bpy.ops.artdef.fit(**fit_kwargs)`` in a fresh
     scene and write the requested outputs; return ``{"blend"|"glb"|"png": path}``
-    for those written."""
+    for those written.  ``fit_kwargs`` keys are the operator's property names
+    (``links``, ``mode``, ``motion``, ``p_max``, ``load_index``,
+    ``frames_per_field``, ``auto_links``, ``max_links``, ``skin``, ``reduce``,
+    ``memory_budget``); ``None`` values are left out, an unknown key is a
+    RuntimeError raised before any work."""
     bpy = _bpy()
     scan_path = os.path.abspath(scan_path)
 
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     ensure_registered()
+    fit_kwargs = fit_options(fit_kwargs)
 
     result = bpy.ops.artdef.import_scan(filepath=scan_path)
     if 'FINISHED' not in result:
@@ -497,7 +522,10 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
 
     with bpy.context.temp_override(active_object=mesh, object=mesh,
                                    selected_objects=[mesh], selected_editable_objects=[mesh]):
-        result = bpy.ops.artdef.fit(**fit_kwargs)
+        try:
+            result = bpy.ops.artdef.fit(**fit_kwargs)
+        except TypeError as ex:  # a value of the wrong type or not in an enum
+            raise RuntimeError(f"artdef.fit: {ex}") from ex
     if 'FINISHED' not in result:
         raise RuntimeError(f"artdef.fit({fit_kwargs}) returned {set(result)}")
     armature = _find_armature(mesh)
@@ -515,5 +543,5 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
     return written
 
 
-__all__ = ["build_outputs", "require_bpy", "ensure_registered", "save_blend", "export_glb",
-           "render_png", "NEED_BPY"]
+__all__ = ["build_outputs", "fit_options", "fit_option_names", "require_bpy", "ensure_registered",
+           "save_blend", "export_glb", "render_png", "NEED_BPY"]

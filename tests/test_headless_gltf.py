@@ -262,6 +262,26 @@ def test_greens_blend_keeps_live_drivers(greens_glb):
     assert (int(start), int(end)) == (0, 2 * 3 * m * 10)
 
 
+def test_build_outputs_rejects_unknown_fit_options(rod_scan, tmp_path):
+    glb = tmp_path / "x.glb"
+    code = ("import sys\n"
+            "from artdef_addon import headless\n"
+            "try:\n"
+            f"    headless.build_outputs({str(rod_scan)!r}, {{'links': 3, 'bogus': 1, 'skin': None}},"
+            f" None, {str(glb)!r}, None)\n"
+            "except RuntimeError as ex:\n"
+            "    print(ex)\n"
+            "    print(sorted(headless.fit_option_names()))\n"
+            "    raise SystemExit(3)\n")
+    proc = _run(["-c", code], cwd=tmp_path)
+    assert proc.returncode == 3, proc.stderr[-3000:]
+    message, names = proc.stdout.strip().splitlines()[-2:]
+    assert "'bogus'" in message and "skin" in message, message
+    for name in ("links", "skin", "reduce", "memory_budget", "frames_per_field"):
+        assert f"'{name}'" in names, names
+    assert not glb.exists()
+
+
 def test_artdef_fit_script_runs_with_the_bpy_module(rod_scan, tmp_path):
     glb = tmp_path / "script.glb"
     _ok(_run([str(REPO_ROOT / "scripts" / "artdef_fit.py"), "--", "fit", str(rod_scan),
