@@ -37,8 +37,11 @@ MEMORY_BUDGET_DESCRIPTION = (
     "full method would need more switches to the reduced method on patches instead of running "
     "out of memory; it also sets how many patches the reduced method uses")
 MOTION_ITEMS = (
-    ('ROBUST', "Robust", "Robust rigid-motion estimate per link (down-weights outliers)"),
-    ('LSQ', "Least Squares", "Plain least-squares rigid motion per link"),
+    ('ROBUST', "Robust", "Each link moves with its motion centroid: the member triangle whose "
+                         "motion agrees exactly with at least half of the link (a medoid that "
+                         "stays correct with up to 50% outlying triangles)"),
+    ('LSQ', "Least Squares", "Least-squares rigid motion fitted to all the link's triangles "
+                             "(for comparison)"),
 )
 
 
