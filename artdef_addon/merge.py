@@ -181,7 +181,7 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
 
 
 def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.ndarray, k: int,
-                 sample: int | None = MEDOID_SAMPLE) -> np.ndarray:
+                 sample: int | None = 512) -> np.ndarray:
     """The motion centroid of every link in every field, with a 50% breakdown point.
 
     m_l^p = argmin_{i∈l} median_{j∈l} ε_p(i, j): the member whose motion agrees exactly with at

@@ -169,20 +169,28 @@ def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray
     t = t.copy()
     P, L = R.shape[:2]
     X = vertices[None] + fields                                          # (P, N, 3)
-    blended = np.einsum("nl,plij,nj->pni", weights, R, vertices) + np.einsum("nl,pli->pni", weights, t)
+
+    def moved(Rl, tl, x):                                                # (P, n, 3), BLAS matmuls
+        return np.matmul(x[None], np.swapaxes(Rl, -1, -2)) + tl[:, None, :]
+
+    blended = np.zeros_like(X)
+    for l in range(L):
+        vid = np.flatnonzero(weights[:, l])
+        if vid.size:
+            blended[:, vid] += weights[vid, l][None, :, None] * moved(R[:, l], t[:, l], vertices[vid])
     for j in range(L):
         vid = np.flatnonzero(weights[:, j] > 1e-6)
         if vid.size < 3:
             continue
         w = weights[vid, j]
         x = vertices[vid]
-        own = np.einsum("pij,nj->pni", R[:, j], x) + t[:, j][:, None, :]
+        own = moved(R[:, j], t[:, j], x)
         rest = blended[:, vid] - w[None, :, None] * own
         y = (X[:, vid] - rest) / w[None, :, None]
         om = w * w
         xs = om @ x / om.sum()
         ys = np.einsum("n,pni->pi", om, y) / om.sum()
-        H = np.einsum("n,ni,pnk->pik", om, x - xs, y - ys[:, None, :])
+        H = np.matmul(((x - xs) * om[:, None]).T[None], y - ys[:, None, :])
         U, _, Vt = np.linalg.svd(H)
         V = np.swapaxes(Vt, -1, -2)
         d = np.sign(np.linalg.det(V @ np.swapaxes(U, -1, -2)))
@@ -190,9 +198,7 @@ def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray
         D[:, 2, 2] = d
         Rj = V @ D @ np.swapaxes(U, -1, -2)
         tj = ys - np.einsum("pij,j->pi", Rj, xs)
-        new_own = np.einsum("pij,nj->pni", Rj, vertices) + tj[:, None, :]
-        old_own = np.einsum("pij,nj->pni", R[:, j], vertices) + t[:, j][:, None, :]
-        blended += weights[None, :, j, None] * (new_own - old_own)
+        blended[:, vid] += w[None, :, None] * (moved(Rj, tj, x) - own)
         R[:, j] = Rj
         t[:, j] = tj
     return R, t
