@@ -99,7 +99,6 @@ def rod(blend: float = 1.0, n_fields: int = 3, seed: int = 0, max_deg: float = 2
         tall = np.concatenate([np.zeros((1, 3)), t])
         fields.append(_skin(x0, w, Rall, tall) - x0)
         rel.append(Rj)
-    c = x0[faces].mean(axis=1)[:, 0]
     truth = dict(face_labels=np.maximum(_true_labels(faces, w)[0] - 1, 0), joints=joints,
                  parents=np.array([-1, 0, 1]), relative_rotations=np.array(rel), weights=w[:, 1:])
     scan = Scan(x0, faces, displacements=np.array(fields), support_vertices=np.arange(8))

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from artdef_addon import fit as F, linkcount, model, quality, samples, scan as S, skinning
+from artdef_addon import fit as F, linkcount, quality, samples, scan as S, skinning
 
 DATA = Path(__file__).parent / "data"
 

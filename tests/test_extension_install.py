@@ -8,8 +8,6 @@ import textwrap
 import tomllib
 import zipfile
 
-import pytest
-
 from conftest import REPO_ROOT
 
 SCIPY_VERSION = "1.15.3"
