@@ -95,14 +95,19 @@ def _check_indices(name, indices, n_vertices):
 # OBJ
 # --------------------------------------------------------------------------
 
-def read_obj(path):
-    """Read an ASCII OBJ file (vertices and faces) → :class:`MeshFile`."""
+def _read_bytes(path):
+    """(file name, contents) of ``path``, or SequenceError naming the file."""
     name = os.path.basename(path)
     try:
         with open(path, "rb") as f:
-            data = f.read()
+            return name, f.read()
     except OSError as err:
         raise SequenceError(f"cannot read {name}: {err.strerror or err}") from None
+
+
+def read_obj(path):
+    """Read an ASCII OBJ file (vertices and faces) → :class:`MeshFile`."""
+    name, data = _read_bytes(path)
     if b"\0" in data[:4096]:
         raise SequenceError(f"cannot read {name}: not a text OBJ file")
     text = data.decode("utf-8", errors="replace")
@@ -372,12 +377,7 @@ def _read_ply_binary(data, body, elements, name, endian):
 
 def read_ply(path):
     """Read a PLY file (ASCII or binary) → :class:`MeshFile`."""
-    name = os.path.basename(path)
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as err:
-        raise SequenceError(f"cannot read {name}: {err.strerror or err}") from None
+    name, data = _read_bytes(path)
     fmt, elements, body = _ply_header(data, name)
     if fmt == "ascii":
         vertices, sizes, indices = _read_ply_ascii(data, body, elements, name)
