@@ -10,20 +10,16 @@ from __future__ import annotations
 import numpy as np
 
 
-def triangle_frames(x: np.ndarray, faces: np.ndarray):
-    """Frames of every triangle.
+def frames_from_offsets(d: np.ndarray):
+    """Frames (T,3,3) and ``ok`` (T,) from each triangle's vertex offsets ``d`` (T,3,3).
 
-    ``x`` is (..., N, 3); returns ``(R, c, ok)`` with ``R`` (..., T, 3, 3) whose columns are
-    x̂, ŷ, ẑ, ``c`` (..., T, 3) the centroids and ``ok`` (..., T) False where the triangle is
-    degenerate (its frame is then the identity).
+    The frame depends on edge vectors only, so offsets from the centroid give the same frame as
+    the positions (x̂ along the first edge, ẑ along the normal, ŷ = ẑ × x̂).
     """
-    a0 = x[..., faces[:, 0], :]
-    a1 = x[..., faces[:, 1], :]
-    a2 = x[..., faces[:, 2], :]
-    e1 = a1 - a0
-    n = np.cross(e1, a2 - a0)
-    l1 = np.linalg.norm(e1, axis=-1)
-    ln = np.linalg.norm(n, axis=-1)
+    e1 = d[..., 1, :] - d[..., 0, :]
+    n = np.cross(e1, d[..., 2, :] - d[..., 0, :])
+    l1 = np.sqrt(np.einsum("...i,...i->...", e1, e1))
+    ln = np.sqrt(np.einsum("...i,...i->...", n, n))
     scale = np.maximum(l1, 1e-300)
     ok = (l1 > 0) & (ln > 1e-12 * scale * scale)
     xh = e1 / np.where(ok, l1, 1.0)[..., None]
@@ -31,7 +27,19 @@ def triangle_frames(x: np.ndarray, faces: np.ndarray):
     yh = np.cross(zh, xh)
     R = np.stack([xh, yh, zh], axis=-1)
     R[~ok] = np.eye(3)
-    c = (a0 + a1 + a2) / 3.0
+    return R, ok
+
+
+def triangle_frames(x: np.ndarray, faces: np.ndarray):
+    """Frames of every triangle.
+
+    ``x`` is (..., N, 3); returns ``(R, c, ok)`` with ``R`` (..., T, 3, 3) whose columns are
+    x̂, ŷ, ẑ, ``c`` (..., T, 3) the centroids and ``ok`` (..., T) False where the triangle is
+    degenerate (its frame is then the identity).
+    """
+    A = x[..., faces, :]                        # (..., T, 3, 3)
+    c = A.mean(axis=-2)
+    R, ok = frames_from_offsets(A - c[..., None, :])
     return R, c, ok
 
 

@@ -22,7 +22,7 @@ import dataclasses
 
 import numpy as np
 
-from .frames import relative_motions
+from .frames import frames_from_offsets, triangle_frames
 
 #: default number of matrix entries per block (≈ 8 bytes × 4 arrays each)
 BLOCK_ENTRIES = 2_000_000
@@ -54,25 +54,53 @@ class FieldFeatures:
         return np.abs(self.disp - self.r_self)
 
 
-def field_features(x0: np.ndarray, u: np.ndarray, faces: np.ndarray) -> FieldFeatures:
-    """Features of one displacement field ``u`` (N,3) on rest positions ``x0`` (N,3)."""
-    x1 = x0 + u
-    R, t = relative_motions(x0, x1, faces)
-    A0 = x0[faces]          # (T,3,3) vertex i, coord
-    A1 = x1[faces]
-    c0 = A0.mean(axis=1)
-    c1 = A1.mean(axis=1)
-    d0 = A0 - c0[:, None, :]
-    d1 = A1 - c1[:, None, :]
-    s = np.einsum("tij,tij->t", d0, d0) + np.einsum("tij,tij->t", d1, d1)
+@dataclasses.dataclass
+class RestGeometry:
+    """What every field's features share: the rest frames, centroids and vertex offsets."""
+    m0: np.ndarray     # (3,) mean rest vertex
+    R0: np.ndarray     # (T,3,3) rest frames
+    c0: np.ndarray     # (T,3) rest centroids
+    d0: np.ndarray     # (T,3,3) rest vertex offsets from the centroid
+    s0: np.ndarray     # (T,) Σ ‖d0‖²
+
+
+def rest_geometry(x0: np.ndarray, faces: np.ndarray) -> RestGeometry:
+    """Rest-shape quantities of :func:`field_features`, computed once per mesh."""
+    R0, c0, _ = triangle_frames(x0, faces)
+    d0 = x0[faces] - c0[:, None, :]
+    return RestGeometry(x0.mean(axis=0), R0, c0, d0, np.einsum("tij,tij->t", d0, d0))
+
+
+def field_features(x0: np.ndarray, u: np.ndarray, faces: np.ndarray,
+                   rest: RestGeometry | None = None) -> FieldFeatures:
+    """Features of one displacement field ``u`` (N,3) on rest positions ``x0`` (N,3).
+
+    Pass ``rest`` (:func:`rest_geometry`) when computing many fields of one mesh: the rest frames
+    and offsets are then not recomputed. Everything is formed from the displacements of each
+    triangle's vertices and the rest offsets, so no deformed position is gathered twice.
+    """
+    if rest is None:
+        rest = rest_geometry(x0, faces)
+    U = u[faces]                                  # (T,3,3) vertex displacements
+    disp = np.sqrt(np.einsum("tij,tij->t", U, U))
+    um = U.mean(axis=1)
+    c0 = rest.c0
+    c1 = c0 + um
+    d0 = rest.d0
+    d1 = d0 + (U - um[:, None, :])
+    R1, _ = frames_from_offsets(d1)
+    R = np.matmul(R1, np.swapaxes(rest.R0, -1, -2))           # ν = E1 E0⁻¹ (Eq. 4)
+    t = c1 - np.einsum("tij,tj->ti", R, c0)
+    s = rest.s0 + np.einsum("tij,tij->t", d1, d1)
     K = np.einsum("tia,tib->tab", d1, d0).reshape(-1, 9)
-    # own residual, straight from the definition (not the expanded form)
-    moved = np.einsum("tab,tib->tia", R, A0) + t[:, None, :]
-    r_self = np.sqrt(np.einsum("tij,tij->t", moved - A1, moved - A1))
-    disp = np.sqrt(np.einsum("tij,tij->t", A1 - A0, A1 - A0))
+    # own residual straight from the definition (not the expanded form): R d0 − d1
+    diff = np.matmul(d0, np.swapaxes(R, -1, -2))
+    diff -= d1
+    r_self = np.sqrt(np.einsum("tij,tij->t", diff, diff))
+    del diff
     # centred copies for the product form
-    m0 = x0.mean(axis=0)
-    m1 = x1.mean(axis=0)
+    m0 = rest.m0
+    m1 = m0 + u.mean(axis=0)
     cc0 = c0 - m0
     cc1 = c1 - m1
     tc = t + R @ m0 - m1

@@ -89,23 +89,117 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray) -> np
     return out
 
 
-def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
-                    R: np.ndarray, t: np.ndarray, seam_weights: np.ndarray, max_influences: int = 4,
-                    rings: int = 3, ground=None) -> np.ndarray:
-    """Per-vertex convex skin weights fitted by least squares over all fields (issue 5; SSDR-style).
+def _homogeneous(vertices: np.ndarray, R: np.ndarray, t: np.ndarray):
+    """Centred homogeneous rest points x̃ = [x − m, 1] (N, 4) and motions A = [R | R m + t − m] (P, L, 3, 4).
 
-    For each vertex v, with candidate links C(v) — the links of the triangles within ``rings``
-    rings of v, at most ``max_influences`` of them, those whose own motion explains v best —
-    solve   min_w Σ_p ‖Σ_{l∈C(v)} w_l (R_l^p x0(v) + t_l^p) − x^p(v)‖²   s.t. w ≥ 0, Σ w = 1,
-    given the link motions (R, t) (P, L, 3, 3) / (P, L, 3). All vertices are solved together and
-    exactly by :func:`simplex_least_squares` on their small Gram systems (no per-vertex Python
-    loop). ``seam_weights`` (N, L) is kept where a vertex has a single candidate. Returns (N, L)
-    rows summing to 1. With ``ground`` (N,) bool, the fixed world (identity motion) is one more
-    candidate for those vertices and their ``rings`` rings, returned as column L.
+    Centring keeps the expanded squares below (‖A x̃‖² − 2 X·A x̃ + ‖X‖²) at round-off of the
+    object's size rather than of its distance from the origin.
     """
+    m = vertices.mean(axis=0)
+    xh = np.empty((vertices.shape[0], 4))
+    xh[:, :3] = vertices - m
+    xh[:, 3] = 1.0
+    A = np.concatenate([R, (t + R @ m - m)[..., None]], axis=-1)
+    return m, xh, A
+
+
+def _from_homogeneous(A: np.ndarray, m: np.ndarray):
+    R = A[..., :3]
+    return R.copy(), A[..., 3] - R @ m + m
+
+
+def _data_pass(xh, fields, m, A=None, Y=None):
+    """One streamed pass over the fields (the only O(P·N) work of an iteration; BLAS products).
+
+    With ``A`` (P, L, 3, 4): q (N, L) = Σ_p X_p(v)·(A_l^p x̃_v) and xx (N,) = Σ_p ‖X_p(v)‖².
+    With ``Y`` (N, 4L) = w_vl x̃_v: M (P, L, 4, 3) = Σ_v w_vl x̃_v X_p(v)ᵀ.
+    X_p = x̃ + u_p in centred coordinates.
+    """
+    N = xh.shape[0]
+    P = fields.shape[0]
+    x = xh[:, :3]
+    out = {}
+    if A is not None:
+        L = A.shape[1]
+        S = np.zeros((N, L * 4))
+        xx = np.zeros(N)
+        out["q"], out["xx"] = S, xx
+    if Y is not None:
+        L = Y.shape[1] // 4
+        M = np.empty((P, L, 4, 3))
+        out["M"] = M
+    for p in range(P):
+        X = x + fields[p]
+        if A is not None:
+            S += X @ A[p].transpose(1, 0, 2).reshape(3, -1)      # Σ_i X_i A_l[i, j] → (N, L·4)
+            xx += np.einsum("ni,ni->n", X, X)
+        if Y is not None:
+            M[p] = (Y.T @ X).reshape(L, 4, 3)
+    if A is not None:
+        out["q"] = np.einsum("nlj,nj->nl", S.reshape(N, -1, 4), xh)
+    return out
+
+
+def _gram_links(A: np.ndarray) -> np.ndarray:
+    """G[a, b] = Σ_p A_aᵀ A_b (L, L, 4, 4): Σ_p (A_a x̃)·(A_b x̃) = x̃ᵀ G[a, b] x̃ for every vertex."""
+    return np.einsum("paij,pbik->abjk", A, A, optimize=True)
+
+
+def _pair_quadratic(xh: np.ndarray, G: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Q (N, m, m) with Q[v, a, b] = x̃_vᵀ G[cols[v,a], cols[v,b]] x̃_v, in vertex blocks."""
+    N, m = cols.shape
+    L = G.shape[0]
+    Gf = G.transpose(2, 3, 0, 1).reshape(16, L * L)
+    Q = np.empty((N, m, m))
+    step = max(1024, int(2e7 // max(L * L, 1)))
+    for s in range(0, N, step):
+        x = xh[s:s + step]
+        H = (np.einsum("nj,nk->njk", x, x).reshape(-1, 16) @ Gf).reshape(-1, L, L)
+        c = cols[s:s + step]
+        Q[s:s + step] = H[np.arange(len(x))[:, None, None], c[:, :, None], c[:, None, :]]
+    return Q
+
+
+def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarray, rings: int = 3,
+                    radius: float | None = None) -> np.ndarray:
+    """Which links may weigh on each vertex: (N, L) bool from the vertex–link ``incidence``.
+
+    With ``radius`` (a fraction of the bounding-box diagonal): every link with a vertex within
+    that geodesic distance along the mesh edges (Dijkstra from each link's vertices; links on
+    another connected piece are never candidates). Otherwise the links within ``rings`` edge
+    rings. A vertex's own links are always candidates.
+    """
+    N, L = incidence.shape
+    f = faces
+    a = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    if radius is not None:
+        from scipy.sparse.csgraph import dijkstra
+        length = np.linalg.norm(vertices[a[:, 0]] - vertices[a[:, 1]], axis=1)
+        E = coo_matrix((length + 1e-300, (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
+        E = E.maximum(E.T)
+        limit = radius * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+        cand = incidence.copy()
+        for l in range(L):
+            src = np.flatnonzero(incidence[:, l])
+            if src.size == 0 or limit <= 0:
+                continue
+            d = dijkstra(E, directed=False, indices=src, min_only=True, limit=limit)
+            cand[:, l] |= np.isfinite(d)
+        return cand
+    A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)
+    cand = incidence.astype(np.float64)
+    for _ in range(max(rings - 1, 0)):
+        cand = np.minimum(cand + A @ cand, 1.0)
+    return cand > 0
+
+
+def _refine(vertices, fields, faces, labels, R, t, seam_weights, max_influences=4, rings=3, ground=None,
+            radius=None):
+    """:func:`refined_weights` plus the total squared articulation error of the result."""
     N = vertices.shape[0]
+    P = R.shape[0]
     if ground is not None:
-        P = R.shape[0]
         R = np.concatenate([R, np.tile(np.eye(3), (P, 1, 1, 1))], axis=1)
         t = np.concatenate([t, np.zeros((P, 1, 3))], axis=1)
         seam_weights = np.concatenate([seam_weights, np.zeros((N, 1))], axis=1)
@@ -115,23 +209,16 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
     inc = np.asarray(coo_matrix((np.ones(rows.size), (rows, np.repeat(labels, 3))), shape=(N, L)).todense()) > 0
     if ground is not None:
         inc[:, L - 1] = ground
-    f = faces
-    a = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
-    A = ((A + A.T) > 0).astype(np.float64)
-    cand = inc.astype(np.float64)
-    for _ in range(max(rings - 1, 0)):
-        cand = cand + A @ cand
-    cand = cand > 0
-    # single-link error of every candidate, accumulated field by field: err (L, N)
-    P = R.shape[0]
-    err = np.zeros((L, N))
-    for p in range(P):
-        Xp = vertices + fields[p]
-        for l in range(L):
-            d = vertices @ R[p, l].T + t[p, l] - Xp
-            err[l] += np.sqrt(np.einsum("ni,ni->n", d, d))
-    err = np.where(cand.T, err, np.inf)
+    cand = candidate_links(vertices, faces, inc, rings=rings, radius=radius)
+    # every candidate's single-link squared error over all fields, from one data pass:
+    # Σ_p ‖A_l x̃ − X_p‖² = x̃ᵀ G_ll x̃ − 2 q_l + Σ_p ‖X_p‖²
+    m0, xh, A = _homogeneous(vertices, R, t)
+    stats = _data_pass(xh, fields, m0, A=A)
+    q_all, xx = stats["q"], stats["xx"]
+    G = _gram_links(A)
+    Gd = G[np.arange(L), np.arange(L)]                                   # (L, 4, 4)
+    err = np.einsum("nj,ljk,nk->ln", xh, Gd, xh, optimize=True) - 2 * q_all.T + xx[None]
+    err = np.where(cand.T, np.maximum(err, 0.0), np.inf)
     if L > max_influences:
         keep = np.argsort(err, axis=0)[:max_influences]                  # (m, N)
         mask = np.zeros((L, N), dtype=bool)
@@ -143,18 +230,38 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
     order = np.argsort(~mask, axis=0, kind="stable")[:m]                # candidate link ids (m, N)
     valid = np.take_along_axis(mask, order, axis=0).T                   # (N, m)
     cols = order.T                                                       # (N, m)
-    # Gram systems of the candidates, accumulated field by field (memory O(N m²))
-    Q = np.zeros((N, m, m))
-    q = np.zeros((N, m))
-    for p in range(P):
-        Yc = np.einsum("nmij,nj->nmi", R[p][cols], vertices) + t[p][cols]   # (N, m, 3)
-        Q += np.einsum("nai,nbi->nab", Yc, Yc)
-        q += np.einsum("nai,ni->na", Yc, vertices + fields[p])
+    # Gram systems of the candidates (memory O(N m²), no pass over the fields)
+    Q = _pair_quadratic(xh, G, cols)
+    q = np.take_along_axis(q_all, cols, axis=1)
     w = simplex_least_squares(Q, q, valid)
     out = np.zeros((N, L))
     np.put_along_axis(out, cols, w, axis=1)
     out[out < 1e-6] = 0.0
-    return out / out.sum(axis=1, keepdims=True)
+    out /= out.sum(axis=1, keepdims=True)
+    wc = np.take_along_axis(out, cols, axis=1)
+    total = float(np.sum(np.einsum("na,nab,nb->n", wc, Q, wc) - 2 * np.einsum("na,na->n", q, wc) + xx))
+    return out, max(total, 0.0)
+
+
+def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
+                    R: np.ndarray, t: np.ndarray, seam_weights: np.ndarray, max_influences: int = 4,
+                    rings: int = 3, ground=None, radius: float | None = None) -> np.ndarray:
+    """Per-vertex convex skin weights fitted by least squares over all fields (issue 5; SSDR-style).
+
+    For each vertex v, with candidate links C(v) — the links of the triangles within ``rings``
+    rings of v, at most ``max_influences`` of them, those whose own motion explains v best —
+    solve   min_w Σ_p ‖Σ_{l∈C(v)} w_l (R_l^p x0(v) + t_l^p) − x^p(v)‖²   s.t. w ≥ 0, Σ w = 1,
+    given the link motions (R, t) (P, L, 3, 3) / (P, L, 3). The normal equations are sums
+    over fields that factor into per-link-pair 4×4 matrices (Σ_p A_aᵀA_b, independent of the
+    vertex) and one streamed pass of small matrix products over the fields (Le & Deng's SSDR
+    trick), so the cost is O(N·P·L) in BLAS plus O(N·m²) — no per-vertex or per-field Python
+    loop over vertices. All vertices are solved exactly by :func:`simplex_least_squares`.
+    ``seam_weights`` (N, L) is kept for the signature (rows with one candidate get weight 1).
+    Returns (N, L) rows summing to 1. With ``ground`` (N,) bool, the fixed world (identity
+    motion) is one more candidate for those vertices and their ``rings`` rings, returned as
+    column L.
+    """
+    return _refine(vertices, fields, faces, labels, R, t, seam_weights, max_influences, rings, ground, radius)[0]
 
 
 def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray, R: np.ndarray,
@@ -163,56 +270,62 @@ def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray
 
     For each link j and field p, with the other links fixed, minimise
     Σ_v ‖w_vj (R_j x_v + t_j) − r_v‖², r_v = x^p_v − Σ_{k≠j} w_vk (R_k x_v + t_k): a weighted
-    Kabsch problem with weights w_vj² and targets r_v / w_vj, solved for all fields at once.
+    Kabsch problem. Its cross-covariance is M_j^p − Σ_{k≠j} A_k C_kj with
+    M^p = Σ_v w_v x̃_v X_p(v)ᵀ (one streamed product per field) and C_kj = Σ_v w_vk w_vj x̃ x̃ᵀ
+    (once), so the links are updated one after another (Gauss–Seidel, as before) for all
+    fields at once without touching the vertices again.
     """
-    R = R.copy()
-    t = t.copy()
     P, L = R.shape[:2]
-    X = vertices[None] + fields                                          # (P, N, 3)
-
-    def moved(Rl, tl, x):                                                # (P, n, 3), BLAS matmuls
-        return np.matmul(x[None], np.swapaxes(Rl, -1, -2)) + tl[:, None, :]
-
-    blended = np.zeros_like(X)
-    for l in range(L):
-        vid = np.flatnonzero(weights[:, l])
-        if vid.size:
-            blended[:, vid] += weights[vid, l][None, :, None] * moved(R[:, l], t[:, l], vertices[vid])
+    N = vertices.shape[0]
+    m0, xh, A = _homogeneous(vertices, R, t)
+    Y = (weights[:, :, None] * xh[:, None, :]).reshape(N, L * 4)
+    C = (Y.T @ Y).reshape(L, 4, L, 4).transpose(0, 2, 1, 3)             # C[k, j] (4, 4)
+    M = _data_pass(xh, fields, m0, Y=Y)["M"]                             # (P, L, 4, 3)
+    count = np.count_nonzero(weights > 1e-6, axis=0)
+    D = np.tile(np.eye(3), (P, 1, 1))
     for j in range(L):
-        vid = np.flatnonzero(weights[:, j] > 1e-6)
-        if vid.size < 3:
+        if count[j] < 3:
             continue
-        w = weights[vid, j]
-        x = vertices[vid]
-        own = moved(R[:, j], t[:, j], x)
-        rest = blended[:, vid] - w[None, :, None] * own
-        y = (X[:, vid] - rest) / w[None, :, None]
-        om = w * w
-        xs = om @ x / om.sum()
-        ys = np.einsum("n,pni->pi", om, y) / om.sum()
-        H = np.matmul(((x - xs) * om[:, None]).T[None], y - ys[:, None, :])
+        Cjj = C[j, j]
+        s0 = Cjj[3, 3]
+        sx = Cjj[:3, 3]
+        # Σ_v w_vj r_v x̃_vᵀ, (P, 3, 4)
+        Nj = (np.swapaxes(M[:, j], -1, -2) - np.einsum("pkia,kab->pib", A, C[:, j], optimize=True)
+              + A[:, j] @ Cjj)
+        n1 = Nj[:, :, 3]
+        H = Nj[:, :, :3] - n1[:, :, None] * sx[None, None, :] / s0
         U, _, Vt = np.linalg.svd(H)
-        V = np.swapaxes(Vt, -1, -2)
-        d = np.sign(np.linalg.det(V @ np.swapaxes(U, -1, -2)))
-        D = np.tile(np.eye(3), (P, 1, 1))
-        D[:, 2, 2] = d
-        Rj = V @ D @ np.swapaxes(U, -1, -2)
-        tj = ys - np.einsum("pij,j->pi", Rj, xs)
-        blended[:, vid] += w[None, :, None] * (moved(Rj, tj, x) - own)
-        R[:, j] = Rj
-        t[:, j] = tj
-    return R, t
+        d = np.sign(np.linalg.det(U @ Vt))
+        D[:, 2, 2] = np.where(d == 0, 1.0, d)
+        Rj = U @ D @ Vt
+        A[:, j, :, :3] = Rj
+        A[:, j, :, 3] = (n1 - Rj @ sx) / s0
+    return _from_homogeneous(A, m0)
 
 
-def alternate(vertices, fields, faces, labels, R, t, seam_weights, iterations: int = 5, **kw):
+#: geodesic reach of a link's skin, as a fraction of the bounding-box diagonal (refined skin)
+SKIN_RADIUS = 0.1
+
+
+def alternate(vertices, fields, faces, labels, R, t, seam_weights, iterations: int = 30,
+              tol: float = 1e-4, radius: float | None = SKIN_RADIUS, **kw):
     """Skinning decomposition from the fitted links: alternate refined weights and link motions.
 
     Starts from the rig's link motions and refines both, as the skinning-decomposition methods
-    (SSDR / Dem Bones) do, keeping artdef's links as the candidate structure. Returns
-    ``(weights, R, t)``; the articulation error never increases from one step to the next.
+    (SSDR / Dem Bones) do, keeping artdef's links as the candidate structure. Stops after
+    ``iterations`` rounds or when a round lowers the squared articulation error by less than a
+    fraction ``tol``. Returns ``(weights, R, t)``; the error never increases from one step to
+    the next (each step is an exact minimiser given the other).
     """
-    w = refined_weights(vertices, fields, faces, labels, R, t, seam_weights, **kw)
+    kw["radius"] = radius
+    w, e = _refine(vertices, fields, faces, labels, R, t, seam_weights, **kw)
     for _ in range(iterations):
-        R, t = update_motions(vertices, fields, w, R, t)
-        w = refined_weights(vertices, fields, faces, labels, R, t, w, **kw)
+        R1, t1 = update_motions(vertices, fields, w, R, t)
+        w1, e1 = _refine(vertices, fields, faces, labels, R1, t1, w, **kw)
+        if e1 > e:      # round-off only: keep the better pair
+            break
+        done = e - e1 <= tol * e
+        w, R, t, e = w1, R1, t1, e1
+        if done:
+            break
     return w, R, t
