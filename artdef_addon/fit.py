@@ -20,7 +20,7 @@ import numpy as np
 
 from . import clustering, cost as _cost, joints as _joints, merge as _merge, model as _model
 from . import patches as _patches
-from .metric import field_features
+from .metric import field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights
 
@@ -151,9 +151,11 @@ class Segmenter:
         self.reduced = bool(reduce)
         if not self.reduced:
             self.features = []
+            rest = rest_geometry(x0, self.faces)
             for p in range(scan.n_fields):
                 _report(progress, "features", p / scan.n_fields)
-                self.features.append(field_features(x0, fields[p], self.faces))
+                self.features.append(field_features(x0, fields[p], self.faces, rest))
+            del rest
             self.weights = _merge.field_weights(self.features)
             self.unit_of = np.arange(Tv)
             self.unit_tri = np.arange(Tv)
@@ -172,11 +174,12 @@ class Segmenter:
         P = self.scan.n_fields
         Tv = len(self.valid)
         weights = np.zeros(P)
+        rest = rest_geometry(x0, self.faces)
 
         def stream():
             for p in range(P):
                 _report(self.progress, "features", 0.5 * p / P)
-                f = field_features(x0, fields[p], self.faces)
+                f = field_features(x0, fields[p], self.faces, rest)
                 z = f.zero_distance().max()
                 weights[p] = 1.0 / z if z > 1e-300 else 0.0
                 yield weights[p], f
@@ -190,10 +193,12 @@ class Segmenter:
         a = labels[self.tri_adjacency]
         a = a[a[:, 0] != a[:, 1]]
         self.adjacency = np.unique(np.sort(a, axis=1), axis=0)
+        del rest
         self.features = []
+        rest = rest_geometry(x0, self.faces[reps])
         for p in range(P):
             _report(self.progress, "features", 0.5 + 0.5 * p / P)
-            self.features.append(field_features(x0, fields[p], self.faces[reps]))
+            self.features.append(field_features(x0, fields[p], self.faces[reps], rest))
         self.notes.append(f"reduced method: {len(reps)} patches of at most {size} triangles "
                           f"(from {Tv} triangles)")
 
@@ -294,7 +299,7 @@ class Segmenter:
         if self.refine:
             R = np.stack([self.features[p].R[medoids[:, i]] for i, p in enumerate(all_fields)])
             t = np.stack([self.features[p].t[medoids[:, i]] for i, p in enumerate(all_fields)])
-            labels = _merge.refine_seams(self.scan.vertices, self.scan.fields()[all_fields], self.faces,
+            labels = _merge.refine_seams(self.scan.vertices, _select(self.scan.fields(), all_fields), self.faces,
                                          R, t, self.weights[all_fields], labels, self.tri_adjacency,
                                          fixed=self.unit_tri[np.unique(medoids)],
                                          iterations=200 if self.reduced else 10)
@@ -333,6 +338,14 @@ class Segmenter:
         return out
 
 
+def _select(fields: np.ndarray, idx) -> np.ndarray:
+    """``fields[idx]`` without a copy when ``idx`` is every field in order (a P·N·3 copy at scale)."""
+    idx = list(idx)
+    if idx == list(range(fields.shape[0])):
+        return fields
+    return fields[idx]
+
+
 def _lsq_motions(x0, fields, faces, labels, L):
     """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, METHOD §6)."""
     P = fields.shape[0]
@@ -361,7 +374,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     """Stages 4–5 for the fields ``field_idx`` of ``scan``; returns a FitResult."""
     x0 = scan.vertices
     faces = scan.faces
-    fields = scan.fields()[field_idx]
+    fields = _select(scan.fields(), field_idx)
     P = len(field_idx)
     labels = seg.full_labels(labels_valid)
     L = int(labels.max()) + 1
@@ -477,8 +490,9 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
             link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
     rms_art = float(np.sqrt(art_err.sum() / (P * N)))
     rms_tot = float(np.sqrt(tot_err.sum() / (P * N)))
-    xs = x0[None] + fields
-    spread = np.sqrt(np.sum((xs - xs.mean(axis=0)) ** 2))
+    # ‖X − X̄‖ over fields, streamed: X − X̄ = u_p − ū
+    mean_u = fields.mean(axis=0)
+    spread = np.sqrt(sum(float(np.sum((fields[i] - mean_u) ** 2)) for i in range(P)))
     kg = float(100.0 * np.sqrt(art_err.sum()) / spread) if spread > 0 else 0.0
     timings["model"] = time.perf_counter() - t0
     res = FitResult(face_labels=labels, parents=parents, joints=joint, joint_errors=jerr,
