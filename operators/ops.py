@@ -661,19 +661,59 @@ class ARTDEF_OT_fit(bpy.types.Operator):
 # preview links
 # --------------------------------------------------------------------------
 
-def _segmenter(obj):
-    """The Segmenter for ``obj``'s scan and its Reduced Method / Memory Budget settings."""
+class _PreviewJob:
+    """Segment one scan for Preview Links (possibly in a worker thread); no bpy access.
+
+    Builds the Segmenter unless a cached one fits, then cuts it to ``links``; the progress
+    callback reports the stage and cancels on Esc, like the fit's.
+    """
+
+    def __init__(self, obj_name, stored, reduce_arg, budget, links, segmenter=None):
+        self.obj_name, self.stored, self.reduce_arg, self.budget = obj_name, stored, reduce_arg, budget
+        self.links = links
+        self.segmenter = segmenter
+        self.cached = segmenter is not None
+        self.labels = None
+        self.error = None
+        self.stage, self.fraction = "start", 0.0
+        self.cancel = threading.Event()
+        self.thread = None
+
+    def progress(self, stage, fraction):
+        self.stage, self.fraction = stage, float(fraction)
+        if self.cancel.is_set():
+            return True
+        return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))
+
+    def run(self):
+        try:
+            if self.segmenter is None:
+                self.segmenter = _fit.Segmenter(self.stored.scan, self.progress, reduce=self.reduce_arg,
+                                                budget=self.budget)
+            self.segmenter.progress = self.progress
+            self.labels = self.segmenter.labels(self.links)
+        except BaseException as err:  # reported on the main thread
+            self.error = err
+        finally:
+            if self.segmenter is not None:
+                self.segmenter.progress = None
+
+    def status_text(self):
+        return stage_text(self.stage, self.fraction)
+
+    def start_thread(self):
+        self.thread = threading.Thread(target=self.run, name="artdef-preview", daemon=True)
+        _THREAD_JOBS.append(self)
+        self.thread.start()
+
+
+def _preview_job(obj, links):
+    """A :class:`_PreviewJob` for ``obj``'s scan and its Reduced Method / Memory Budget settings."""
     stored = io.read_scan(obj)
     st = obj.artdef
     key, reduce_arg = planned_key(stored, st.reduce, st.memory_budget)
     seg = _cached_segmenter(obj.name, key)
-    if seg is not None:
-        seg.progress = None
-        return seg, stored, True
-    seg = _fit.Segmenter(stored.scan, reduce=reduce_arg, budget=st.memory_budget * GB)
-    _cache_segmenter(obj.name, segmenter_key(stored.fingerprint, seg.reduced, st.reduce,
-                                             st.memory_budget), seg)
-    return seg, stored, False
+    return _PreviewJob(obj.name, stored, reduce_arg, st.memory_budget * GB, links, seg)
 
 
 class ARTDEF_OT_preview_links(bpy.types.Operator):
@@ -685,30 +725,115 @@ class ARTDEF_OT_preview_links(bpy.types.Operator):
     links: IntProperty(name="Links", default=3, min=1, soft_max=64,
                        description="Number of links to show")
 
+    _job = None
+    _timer = None
+
     @classmethod
     def poll(cls, context):
         return _scan_mesh_poll(cls, context)
 
+    def _prepare(self, context):
+        try:
+            return _preview_job(context.active_object, self.links)
+        except (_scan.ScanError, ValueError) as err:
+            self.report({'ERROR'}, str(err))
+            return None
+
+    def execute(self, context):
+        job = self._prepare(context)
+        if job is None:
+            return {'CANCELLED'}
+        job.run()
+        return self._finish(context, job)
+
+    # -- interactive path: the first clustering of a big scan runs in a worker thread,
+    #    with progress in the status bar and Esc to cancel (a cached one is instant)
     def invoke(self, context, event):
         if not self.properties.is_property_set("links"):
             self.links = context.active_object.artdef.links
-        return self.execute(context)
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        job = self._prepare(context)
+        if job is None:
+            return {'CANCELLED'}
+        if job.cached:
+            job.run()
+            return self._finish(context, job)
+        self._job = job
+        wm = context.window_manager
+        wm.progress_begin(0, 1000)
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.modal_handler_add(self)
+        job.start_thread()
+        self._status(context, job.status_text())
+        return {'RUNNING_MODAL'}
 
-    def execute(self, context):
-        obj = context.active_object
-        try:
-            seg, stored, cached = _segmenter(obj)
-            labels = seg.labels(self.links)
-        except (_scan.ScanError, ValueError) as err:
+    def _status(self, context, text):
+        if context.workspace is not None:
+            context.workspace.status_text_set(
+                None if text is None else f"ArtDef preview: {text} — Esc to cancel")
+
+    def _end(self, context):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        self._status(context, None)
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == 'ESC':
+            job.cancel.set()
+            self._end(context)
+            self.report({'WARNING'}, "Preview cancelled; the scene is unchanged")
+            return {'CANCELLED'}
+        if event.type == 'TIMER':
+            context.window_manager.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0)))
+            self._status(context, job.status_text())
+            if not job.thread.is_alive():
+                self._end(context)
+                return self._finish(context, job)
+            return {'RUNNING_MODAL'}
+        if event.type in {'MIDDLEMOUSE', 'WHEELUPMOUSE', 'WHEELDOWNMOUSE', 'TRACKPADPAN',
+                          'TRACKPADZOOM', 'MOUSEMOVE', 'INBETWEEN_MOUSEMOVE'}:
+            return {'PASS_THROUGH'}
+        return {'RUNNING_MODAL'}
+
+    def cancel(self, context):
+        if self._job is not None:
+            self._job.cancel.set()
+        self._end(context)
+
+    def _finish(self, context, job):
+        """Report the job's outcome; on success colour the faces.  Main thread only."""
+        err = job.error
+        if isinstance(err, _fit.FitCancelled):
+            self.report({'WARNING'}, "Preview cancelled; the scene is unchanged")
+            return {'CANCELLED'}
+        if isinstance(err, (_scan.ScanError, ValueError)):
             self.report({'ERROR'}, str(err))
             return {'CANCELLED'}
+        if err is not None:
+            traceback.print_exception(type(err), err, err.__traceback__)
+            self.report({'ERROR'}, f"Preview failed ({type(err).__name__}): {err}")
+            return {'CANCELLED'}
+        seg, stored = job.segmenter, job.stored
+        obj = bpy.data.objects.get(job.obj_name)
+        if obj is None or obj.type != 'MESH' or len(obj.data.vertices) != len(stored.scan.vertices):
+            self.report({'ERROR'}, f"'{job.obj_name}' changed while it was being segmented; nothing done")
+            return {'CANCELLED'}
+        st = obj.artdef
+        _cache_segmenter(obj.name, segmenter_key(stored.fingerprint, seg.reduced, st.reduce,
+                                                 st.memory_budget), seg)
+        labels = job.labels
         rig.write_link_colours(obj.data, labels, stored.tri_polygons)
         obj.data.update()
         space = context.space_data
         if space is not None and space.type == 'VIEW_3D' and space.shading.type == 'SOLID':
             space.shading.color_type = 'VERTEX'  # show the colour attribute
         self.report({'INFO'}, f"'{obj.name}': {int(labels.max()) + 1} links"
-                              f"{' (cached clustering)' if cached else ''}")
+                              f"{' (cached clustering)' if job.cached else ''}")
         return {'FINISHED'}
 
 

@@ -442,6 +442,37 @@ def test_fields_from_shape_keys(clean_scene, pkg, sample_files):
     assert [k.name for k in obj.data.shape_keys.key_blocks] == keys[:1 + ref.n_fields]
 
 
+def test_preview_segments_in_a_worker_thread_and_cancels(clean_scene, pkg, sample_files):
+    """The interactive Preview Links runs its first clustering off the main thread (issue 6):
+    the worker gives the same links as the synchronous path, and Esc (a cancel) leaves no
+    cached clustering and no colours behind."""
+    obj = import_scan(sample_files["branching"])
+    pkg.ops._SEGMENTERS.clear()
+    job = pkg.ops._preview_job(obj, 11)
+    assert not job.cached
+    job.start_thread()
+    job.thread.join(timeout=600)
+    assert job.error is None and job.labels is not None
+    ref = pkg.ops._fit.Segmenter(pkg.io.read_scan(obj).scan).labels(11)
+    assert len(np.unique(job.labels)) == 11 and np.array_equal(job.labels, ref)
+    stages = []
+
+    def hook(stage, fraction):
+        stages.append(stage)
+        return True  # cancel at the first report
+
+    pkg.ops.PROGRESS_HOOKS.append(hook)
+    try:
+        job = pkg.ops._preview_job(obj, 11)
+        job.start_thread()
+        job.thread.join(timeout=600)
+    finally:
+        pkg.ops.PROGRESS_HOOKS.remove(hook)
+    assert stages and isinstance(job.error, pkg.ops._fit.FitCancelled)
+    assert obj.name not in pkg.ops._SEGMENTERS
+    assert "artdef_links" not in obj.data.color_attributes
+
+
 def test_preview_links_colours_faces_from_cached_clustering(clean_scene, pkg, sample_files):
     obj = import_scan(sample_files["branching"])
     pkg.ops._SEGMENTERS.clear()
