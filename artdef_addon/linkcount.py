@@ -11,7 +11,12 @@ deformation). Where the scan has support vertices the fixed world is one more ca
 
     log(e(k) / e_floor) ≤ τ · log(e(1) / e_floor),    e_floor = min_k e(k),
 
-i.e. k gets within a fraction τ (default 0.15) of the whole drop, on a log scale.
+i.e. k gets within a fraction τ (default 0.15) of the whole drop, on a log scale. That k₀ is
+where the big drop ends; past it the curve keeps falling slowly because extra links only
+re-cut seams (roughly like a power of k), while a still-missing small link (a finger, a tail
+segment) makes it fall faster. So from k₀ on, k grows while the error over the next h = 4 link
+counts falls faster than k^(−s), s = 0.7 (log-log slope of the running minimum of e,
+log(ê(k)/ê(k+h)) / log((k+h)/k) > s); the first k where it does not is the choice.
 """
 from __future__ import annotations
 
@@ -61,7 +66,8 @@ def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
     return np.array(out)
 
 
-def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None) -> LinkChoice:
+def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slope: float = 0.7,
+                 window: int = 4) -> LinkChoice:
     """Pick the link count for a :class:`fit.Segmenter` (see module docstring)."""
     max_links = int(max(1, min(max_links, len(seg.valid))))
     e = articulation_error_curve(seg, max_links, progress=progress)
@@ -72,7 +78,19 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None) -> 
         why = f"one rigid motion explains every field (error {e[0]:.3g}%)"
     else:
         frac = np.log(np.maximum(e, floor) / floor) / np.log(top / floor)
-        k = int(np.flatnonzero(frac <= tau)[0]) + 1
-        why = (f"articulation error {e[0]:.2f}% with 1 link, {e[k - 1]:.2f}% with {k}, floor {e.min():.2f}% "
-               f"by {max_links}: {k} links reach the floor within tau={tau:g} on a log scale")
+        k0 = int(np.flatnonzero(frac <= tau)[0]) + 1
+        env = np.minimum.accumulate(np.maximum(e, floor))  # best error with at most k links
+        k = k0
+        while k < max_links:
+            j = min(max_links, k + window)
+            if np.log(env[k - 1] / env[j - 1]) / np.log(j / k) <= slope:
+                break
+            k += 1
+        why = (f"articulation error {e[0]:.2f}% with 1 link, {e[k0 - 1]:.2f}% with {k0} (within tau={tau:g} of the "
+               f"floor {e.min():.2f}% by {max_links} on a log scale)")
+        if k > k0:
+            why += (f", still falling faster than k^-{slope:g} over the next {window} link counts up to {k} "
+                    f"({e[k - 1]:.2f}%)")
+        else:
+            why += f"; beyond it the error falls slower than k^-{slope:g}"
     return LinkChoice(k, e, tau, f"links auto: chose {k}. {why}")
