@@ -381,9 +381,9 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     timings = {}
     t0 = time.perf_counter()
     # link motions
-    if motion == "lsq":
-        R, t = _lsq_motions(x0, fields, faces, labels, L)
-    else:
+    def link_motions(labels, medoids):
+        if motion == "lsq":
+            return _lsq_motions(x0, fields, faces, labels, L)
         R = np.tile(np.eye(3), (P, L, 1, 1))
         t = np.zeros((P, L, 3))
         col = {p: i for i, p in enumerate(used_fields)}
@@ -392,6 +392,19 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
                 m = medoids[:, col[p]]
                 R[i] = seg.features[p].R[m]
                 t[i] = seg.features[p].t[m]
+        return R, t
+
+    R, t = link_motions(labels, medoids)
+    if _merge.DOMINANT_RELABEL and scan.kind != "greens" and L > 1 and P > 0:
+        # tracked scans: faces to the link that dominates their skin, then the links' motions
+        # again (Green's scans keep the paper's segmentation)
+        new = _merge.dominant_labels(x0, fields, faces, labels, R, t, units=seg.valid[seg.unit_tri])
+        if np.any(new != labels):
+            labels = new
+            if motion != "lsq":
+                medoids = _merge.link_medoids([seg.features[p] for p in used_fields], seg.weights[used_fields],
+                                              labels[seg.valid][seg.unit_tri], L)
+            R, t = link_motions(labels, medoids)
     # adjacency of links (shared vertices) and seam reference points
     N = x0.shape[0]
     inc = np.zeros((N, L))

@@ -213,3 +213,35 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
             else:
                 out[l, p] = m[cand[0]]
     return out
+
+
+#: relabel every face by its dominant skin weight after the link motions are known (see below)
+DOMINANT_RELABEL = True
+
+
+def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
+                    R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None) -> np.ndarray:
+    """Give every face to the link that dominates its skin (an addition to the paper, issue 5).
+
+    On a smoothly skinned character the motion of a triangle between two bones is a blend of
+    theirs, so the clustering (and the link's robust motion, a medoid) can sit anywhere along the
+    blend: the seams end up shifted by up to half a bone, and a short bone whose every triangle is
+    blended can lose its link to its neighbours. Here the skin is decomposed from the links' own
+    motions (:func:`skinning.alternate`: per-vertex convex weights over the nearby links and the
+    link motions, alternated as in SSDR), and each face goes to the link with the largest summed
+    weight over its three vertices — the usual definition of a face's bone in rigged data. A link
+    that would own no face — or none of the faces ``units`` that carry the link motions (the
+    clustered triangles, or the patch representatives of the reduced method) — keeps its faces.
+    ``labels`` (T,) over all faces, ``R`` (P, k, 3, 3), ``t`` (P, k, 3). Returns the new (T,) labels.
+    """
+    from .skinning import alternate, blend_weights
+    k = R.shape[1]
+    w, _, _ = alternate(x0, fields, faces, labels, R, t, blend_weights(x0, faces, labels, k))
+    new = w[faces, :k].sum(axis=1).argmax(axis=1)
+    for _ in range(k):
+        owned = np.bincount(new if units is None else new[units], minlength=k) > 0
+        if owned.all():
+            break
+        keep = ~owned[labels]
+        new[keep] = labels[keep]
+    return new
