@@ -236,7 +236,8 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     """
     from .skinning import alternate, blend_weights
     k = R.shape[1]
-    w, _, _ = alternate(x0, fields, faces, labels, R, t, blend_weights(x0, faces, labels, k))
+    # a rough skin is enough for the argmax: fewer rounds than the final refined skin
+    w, _, _ = alternate(x0, fields, faces, labels, R, t, blend_weights(x0, faces, labels, k), iterations=10)
     new = w[faces, :k].sum(axis=1).argmax(axis=1)
     for _ in range(k):
         owned = np.bincount(new if units is None else new[units], minlength=k) > 0

@@ -108,12 +108,18 @@ def _from_homogeneous(A: np.ndarray, m: np.ndarray):
     return R.copy(), A[..., 3] - R @ m + m
 
 
+#: bytes of one vertex block of the stacked fields in :func:`_data_pass`
+PASS_BLOCK_BYTES = 64 * 2 ** 20
+
+
 def _data_pass(xh, fields, m, A=None, Y=None):
     """One streamed pass over the fields (the only O(P·N) work of an iteration; BLAS products).
 
     With ``A`` (P, L, 3, 4): q (N, L) = Σ_p X_p(v)·(A_l^p x̃_v) and xx (N,) = Σ_p ‖X_p(v)‖².
     With ``Y`` (N, 4L) = w_vl x̃_v: M (P, L, 4, 3) = Σ_v w_vl x̃_v X_p(v)ᵀ.
-    X_p = x̃ + u_p in centred coordinates.
+    X_p = x̃ + u_p in centred coordinates. The fields are read in vertex blocks laid out as
+    (n, 3P), so each block is one matrix product with an inner dimension of 3P over all fields
+    at once (instead of P thin products).
     """
     N = xh.shape[0]
     P = fields.shape[0]
@@ -121,22 +127,26 @@ def _data_pass(xh, fields, m, A=None, Y=None):
     out = {}
     if A is not None:
         L = A.shape[1]
-        S = np.zeros((N, L * 4))
-        xx = np.zeros(N)
-        out["q"], out["xx"] = S, xx
+        Aflat = A.transpose(0, 2, 1, 3).reshape(3 * P, 4 * L)            # [(p,i), (l,j)]
+        q = np.empty((N, L))
+        xx = np.empty(N)
+        out["q"], out["xx"] = q, xx
     if Y is not None:
         L = Y.shape[1] // 4
-        M = np.empty((P, L, 4, 3))
-        out["M"] = M
-    for p in range(P):
-        X = x + fields[p]
+        Mflat = np.zeros((4 * L, 3 * P))                                  # [(l,j), (p,i)]
+    step = max(256, int(PASS_BLOCK_BYTES // (8 * 3 * max(P, 1))))
+    for s in range(0, N, step):
+        e = min(N, s + step)
+        # (n, 3P), a new array (the fields are never written: with one field the reshape is a view)
+        Xb = fields[:, s:e, :].transpose(1, 0, 2).reshape(e - s, 3 * P) + np.tile(x[s:e], P)
         if A is not None:
-            S += X @ A[p].transpose(1, 0, 2).reshape(3, -1)      # Σ_i X_i A_l[i, j] → (N, L·4)
-            xx += np.einsum("ni,ni->n", X, X)
+            S = (Xb @ Aflat).reshape(e - s, L, 4)
+            q[s:e] = np.einsum("nlj,nj->nl", S, xh[s:e])
+            xx[s:e] = np.einsum("ni,ni->n", Xb, Xb)
         if Y is not None:
-            M[p] = (Y.T @ X).reshape(L, 4, 3)
-    if A is not None:
-        out["q"] = np.einsum("nlj,nj->nl", S.reshape(N, -1, 4), xh)
+            Mflat += Y[s:e].T @ Xb
+    if Y is not None:
+        out["M"] = Mflat.reshape(L, 4, P, 3).transpose(2, 0, 1, 3)
     return out
 
 
@@ -194,9 +204,23 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
     return cand > 0
 
 
+def _candidates(vertices, faces, labels, L, rings, radius, ground):
+    """(N, L) candidate links of every vertex (see :func:`candidate_links`); L counts the ground."""
+    N = vertices.shape[0]
+    rows = faces.reshape(-1)
+    inc = np.asarray(coo_matrix((np.ones(rows.size), (rows, np.repeat(labels, 3))), shape=(N, L)).todense()) > 0
+    if ground is not None:
+        inc[:, L - 1] = ground
+    return candidate_links(vertices, faces, inc, rings=rings, radius=radius)
+
+
 def _refine(vertices, fields, faces, labels, R, t, seam_weights, max_influences=4, rings=3, ground=None,
-            radius=None):
-    """:func:`refined_weights` plus the total squared articulation error of the result."""
+            radius=None, cand=None):
+    """:func:`refined_weights` plus the total squared articulation error of the result.
+
+    ``cand`` is the candidate matrix when the caller already has it (it depends on the labels
+    only, so an alternation computes it once).
+    """
     N = vertices.shape[0]
     P = R.shape[0]
     if ground is not None:
@@ -204,12 +228,8 @@ def _refine(vertices, fields, faces, labels, R, t, seam_weights, max_influences=
         t = np.concatenate([t, np.zeros((P, 1, 3))], axis=1)
         seam_weights = np.concatenate([seam_weights, np.zeros((N, 1))], axis=1)
     L = R.shape[1]
-    # candidate links: dilate the vertex-link incidence over the vertex graph
-    rows = faces.reshape(-1)
-    inc = np.asarray(coo_matrix((np.ones(rows.size), (rows, np.repeat(labels, 3))), shape=(N, L)).todense()) > 0
-    if ground is not None:
-        inc[:, L - 1] = ground
-    cand = candidate_links(vertices, faces, inc, rings=rings, radius=radius)
+    if cand is None:
+        cand = _candidates(vertices, faces, labels, L, rings, radius, ground)
     # every candidate's single-link squared error over all fields, from one data pass:
     # Σ_p ‖A_l x̃ − X_p‖² = x̃ᵀ G_ll x̃ − 2 q_l + Σ_p ‖X_p‖²
     m0, xh, A = _homogeneous(vertices, R, t)
@@ -318,6 +338,8 @@ def alternate(vertices, fields, faces, labels, R, t, seam_weights, iterations: i
     the next (each step is an exact minimiser given the other).
     """
     kw["radius"] = radius
+    L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
+    kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
     w, e = _refine(vertices, fields, faces, labels, R, t, seam_weights, **kw)
     for _ in range(iterations):
         R1, t1 = update_motions(vertices, fields, w, R, t)
