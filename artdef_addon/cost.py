@@ -65,7 +65,7 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
 
 
 #: most patch representatives the reduced method uses (time grows with their square × fields)
-MAX_UNITS = 2000
+MAX_UNITS = 1000
 
 
 def reduced_units(budget: float = DEFAULT_BUDGET) -> int:

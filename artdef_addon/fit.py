@@ -149,6 +149,7 @@ class Segmenter:
                 self.notes.append(f"the full method needs about {_cost.format_bytes(need)} "
                                   f"(budget {_cost.format_bytes(budget)}): using the reduced method on patches")
         self.reduced = bool(reduce)
+        self.unit_size = None  # triangles per clustered unit (reduced method: patch sizes)
         if not self.reduced:
             self.features = []
             rest = rest_geometry(x0, self.faces)
@@ -190,6 +191,7 @@ class Segmenter:
         self.weights = weights
         self.unit_of = labels
         self.unit_tri = reps
+        self.unit_size = np.bincount(labels, minlength=len(reps)).astype(np.float64)
         a = labels[self.tri_adjacency]
         a = a[a[:, 0] != a[:, 1]]
         self.adjacency = np.unique(np.sort(a, axis=1), axis=0)
@@ -236,7 +238,7 @@ class Segmenter:
         w = self.weights[fields]
         cb = None if self.progress is None else (lambda f: self.progress(stage, f))
         try:
-            return _merge.merge_clusters(feats, w, init, k, progress=cb)
+            return _merge.merge_clusters(feats, w, init, k, progress=cb, unit_size=self.unit_size)
         except _merge._Cancel:
             raise FitCancelled(f"cancelled during {stage}") from None
 
@@ -294,7 +296,7 @@ class Segmenter:
         labels_u, medoids, sums = self._merge(init, all_fields, k, "merge")
         k = medoids.shape[0]
         feats = [self.features[p] for p in all_fields]
-        medoids = _merge.link_medoids(feats, self.weights[all_fields], labels_u, k)
+        medoids = _merge.link_medoids(feats, self.weights[all_fields], labels_u, k, unit_size=self.unit_size)
         labels = labels_u[self.unit_of]
         if self.refine:
             R = np.stack([self.features[p].R[medoids[:, i]] for i, p in enumerate(all_fields)])
@@ -303,7 +305,8 @@ class Segmenter:
                                          R, t, self.weights[all_fields], labels, self.tri_adjacency,
                                          fixed=self.unit_tri[np.unique(medoids)],
                                          iterations=200 if self.reduced else 10)
-            medoids = _merge.link_medoids(feats, self.weights[all_fields], labels[self.unit_tri], k)
+            medoids = _merge.link_medoids(feats, self.weights[all_fields], labels[self.unit_tri], k,
+                                          unit_size=self.unit_size)
         self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0
         return labels, medoids, all_fields
 
@@ -403,7 +406,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
             labels = new
             if motion != "lsq":
                 medoids = _merge.link_medoids([seg.features[p] for p in used_fields], seg.weights[used_fields],
-                                              labels[seg.valid][seg.unit_tri], L)
+                                              labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
             R, t = link_motions(labels, medoids)
     # adjacency of links (shared vertices) and seam reference points
     N = x0.shape[0]

@@ -36,10 +36,11 @@ MEDOID_SAMPLE = 1024
 
 
 def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.ndarray,
-                   k: int, progress=None, sample: int | None = MEDOID_SAMPLE):
+                   k: int, progress=None, sample: int | None = MEDOID_SAMPLE, unit_size=None):
     """Agglomerate the clusters of ``init`` (T,) down to ``k`` on Λ.
 
-    Returns ``(labels (T,), medoids (k, P), row_sums (P, T))`` with labels 0..k−1 ordered by
+    ``unit_size`` (T,) is how many triangles each clustered unit stands for (the patch sizes of
+    the reduced method; default 1): the |A| of Λ counts triangles, not patches. Returns ``(labels (T,), medoids (k, P), row_sums (P, T))`` with labels 0..k−1 ordered by
     the smallest triangle index of each link, and the medoid triangle of each link per field.
     """
     T = init.shape[0]
@@ -47,17 +48,21 @@ def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.
     _, init = np.unique(init, return_inverse=True)
     nc = int(init.max()) + 1
     members = _groups(init, nc)
+    us = (lambda m: None) if unit_size is None else (lambda m: unit_size[m])  # noqa: E731
     sums = np.zeros((P, T))
     for p, f in enumerate(features):
         if weights[p] == 0:
             continue
         for m in members:
             if len(m) > 1:
-                sums[p, m] = distance_row_sums(f, m, m, sample=sample)
+                sums[p, m] = distance_row_sums(f, m, m, sample=sample, col_weights=us(m))
     medoid = np.zeros((nc, P), dtype=np.int64)
     for c, m in enumerate(members):
         medoid[c] = m[np.argmin(sums[:, m], axis=1)]
-    size = np.array([len(m) for m in members], dtype=np.float64)
+    if unit_size is None:
+        size = np.array([len(m) for m in members], dtype=np.float64)
+    else:
+        size = np.array([float(np.sum(unit_size[m])) for m in members])
     D = np.zeros((nc, nc))
     for p, f in enumerate(features):
         if weights[p]:
@@ -76,7 +81,7 @@ def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.
         A, B = members[a], members[b]
         for p, f in enumerate(features):
             if weights[p]:
-                sa, sb = cross_sums(f, A, B, sample=sample)
+                sa, sb = cross_sums(f, A, B, sample=sample, wA=us(A), wB=us(B))
                 sums[p, A] += sa
                 sums[p, B] += sb
         m = np.concatenate([A, B])
@@ -181,7 +186,7 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
 
 
 def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.ndarray, k: int,
-                 sample: int | None = 512) -> np.ndarray:
+                 sample: int | None = 512, unit_size=None) -> np.ndarray:
     """The motion centroid of every link in every field, with a 50% breakdown point.
 
     m_l^p = argmin_{i∈l} median_{j∈l} ε_p(i, j): the member whose motion agrees exactly with at
@@ -189,29 +194,45 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
     core triangle, so the link's robust motion is exact however wide the blends are (the
     plain sum of §5.2 drifts toward the seams once they are about a third of the link). Used
     for the final link motions; the merge keeps the sum, which it can update incrementally.
-    Returns (k, P) triangle indices (into the clustered triangles).
+    With ``unit_size`` (patch sizes of the reduced method) the median is weighted by the
+    triangles each unit stands for. Returns (k, P) indices into the clustered units.
     """
     from .metric import _subsample
+
+    def reference(m):
+        """Members the median runs over: an even subsample, or, with unit sizes, ``sample``
+        members drawn evenly along the cumulative triangle count (a unit appears about in
+        proportion to its size, so the plain median is the size-weighted one)."""
+        if unit_size is None:
+            return _subsample(m, sample)
+        cum = np.cumsum(np.asarray(unit_size, dtype=np.float64)[m])
+        n = min(sample, len(m)) if sample else len(m)
+        at = np.searchsorted(cum, (np.arange(n) + 0.5) / n * cum[-1])
+        return m[np.minimum(at, len(m) - 1)]
+
     P = len(features)
     out = np.zeros((k, P), dtype=np.int64)
     groups = _groups(labels, k)
     for l, m in enumerate(groups):
-        ref = _subsample(m, sample)
+        ref = reference(m)
+        # candidates: every member of a small link, an even subsample of twice ``sample`` of a
+        # big one (a rigid core is most of a link, so the subsample holds core members)
+        pool = _subsample(m, None if sample is None else 2 * sample)
         for p, f in enumerate(features):
             if len(m) == 1:
                 out[l, p] = m[0]
                 continue
-            med = np.empty(len(m))
+            med = np.empty(len(pool))
             step = max(1, 2_000_000 // max(len(ref), 1))
-            for i0 in range(0, len(m), step):
-                med[i0:i0 + step] = np.median(distance_block(f, m[i0:i0 + step], ref), axis=1)
+            for i0 in range(0, len(pool), step):
+                med[i0:i0 + step] = np.median(distance_block(f, pool[i0:i0 + step], ref), axis=1)
             # ties (a whole rigid core at zero) go to the smallest sum, i.e. deepest in the core
             cand = np.flatnonzero(med <= med.min() + 1e-12 * max(med.max(), 1e-300))
             if len(cand) > 1:
-                sums = distance_block(f, m[cand], ref).sum(axis=1)
-                out[l, p] = m[cand[np.argmin(sums)]]
+                sums = distance_block(f, pool[cand], ref).sum(axis=1)
+                out[l, p] = pool[cand[np.argmin(sums)]]
             else:
-                out[l, p] = m[cand[0]]
+                out[l, p] = pool[cand[0]]
     return out
 
 

@@ -196,39 +196,49 @@ def _subsample(idx: np.ndarray, cap: int | None) -> np.ndarray:
 
 
 def distance_row_sums(f: FieldFeatures, rows, cols, block_entries: int = BLOCK_ENTRIES,
-                      sample: int | None = None) -> np.ndarray:
-    """Σ_{j∈cols} ε(i, j) for every i in ``rows`` without forming the whole block at once.
+                      sample: int | None = None, col_weights=None) -> np.ndarray:
+    """Σ_{j∈cols} c_j ε(i, j) for every i in ``rows`` without forming the whole block at once.
 
-    With ``sample`` the sum over a large ``cols`` is estimated from ``sample`` evenly spaced
-    members, scaled to the full count (a CLARA-style medoid estimate for big clusters).
+    ``col_weights`` c (len(cols),) defaults to 1. With ``sample`` the sum over a large ``cols``
+    is estimated from ``sample`` evenly spaced members, scaled to the full weight (a CLARA-style
+    medoid estimate for big clusters).
     """
     rows = np.asarray(rows)
     cols = np.asarray(cols)
-    sub = _subsample(cols, sample)
-    scale = len(cols) / max(len(sub), 1)
+    pick = _subsample(np.arange(len(cols)), sample)
+    sub = cols[pick]
+    if col_weights is None:
+        w = None
+        scale = len(cols) / max(len(sub), 1)
+    else:
+        col_weights = np.asarray(col_weights, dtype=np.float64)
+        w = col_weights[pick]
+        scale = col_weights.sum() / max(w.sum(), 1e-300)
     out = np.zeros(len(rows))
     step = max(1, block_entries // max(len(sub), 1))
     for i0 in range(0, len(rows), step):
-        out[i0:i0 + step] = distance_block(f, rows[i0:i0 + step], sub).sum(axis=1)
+        blk = distance_block(f, rows[i0:i0 + step], sub)
+        out[i0:i0 + step] = blk.sum(axis=1) if w is None else blk @ w
     return out * scale
 
 
-def cross_sums(f: FieldFeatures, A, B, block_entries: int = BLOCK_ENTRIES, sample: int | None = None):
-    """Row and column sums of the ε block A×B: (Σ_{j∈B} ε(i,j) for i∈A, Σ_{i∈A} ε(i,j) for j∈B).
+def cross_sums(f: FieldFeatures, A, B, block_entries: int = BLOCK_ENTRIES, sample: int | None = None,
+               wA=None, wB=None):
+    """Row and column sums of the ε block A×B: (Σ_{j∈B} w_j ε(i,j) for i∈A, Σ_{i∈A} w_i ε(i,j) for j∈B).
 
-    Exact unless both sides exceed ``sample``; then each sum is estimated from a subsample of
-    the other side.
+    ``wA``/``wB`` weigh the members (default 1). Exact unless both sides exceed ``sample``; then
+    each sum is estimated from a subsample of the other side.
     """
     A = np.asarray(A)
     B = np.asarray(B)
     if sample is not None and len(A) > sample and len(B) > sample:
-        return (distance_row_sums(f, A, B, block_entries, sample),
-                distance_row_sums(f, B, A, block_entries, sample))
+        return (distance_row_sums(f, A, B, block_entries, sample, wB),
+                distance_row_sums(f, B, A, block_entries, sample, wA))
     sa = np.zeros(len(A))
     sb = np.zeros(len(B))
     step = max(1, block_entries // max(len(B), 1))
     for i0 in range(0, len(A), step):
         blk = distance_block(f, A[i0:i0 + step], B)
-        sa[i0:i0 + step] = blk.sum(axis=1)
-        sb += blk.sum(axis=0)
+        sa[i0:i0 + step] = blk.sum(axis=1) if wB is None else blk @ wB
+        sb += blk.sum(axis=0) if wA is None else wA[i0:i0 + step] @ blk
     return sa, sb

@@ -51,41 +51,57 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray) -> np
     """Exact minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries.
 
     Batched over rows (Q (N,m,m), q (N,m), m small): every support subset S of the m candidates
-    is tried at once for all rows — the equality-constrained optimum on S from its KKT system —
-    and the best feasible one is kept. The convex optimum is one of them, so this is exact
-    (2^m − 1 tiny solves per row; m ≤ 4 gives 15).
+    is tried at once for the rows where all of S is valid — the equality-constrained optimum on
+    S from its KKT system — and the best feasible one is kept. The convex optimum is one of
+    them, so this is exact (2^m − 1 tiny solves per row at most; m ≤ 4 gives 15). Rows with a
+    single valid candidate get weight 1 on it without a solve.
     """
     N, m = q.shape
     best = np.full(N, np.inf)
     out = np.zeros((N, m))
+    nvalid = valid.sum(axis=1)
+    one = nvalid == 1
+    out[one] = valid[one]
+    best[one] = 0.0  # the only feasible point
+    multi = np.flatnonzero(nvalid > 1)
+    if multi.size == 0:
+        return out
+    Qm, qm, vm = Q[multi], q[multi], valid[multi]
+    bm = np.full(multi.size, np.inf)
+    om = np.zeros((multi.size, m))
     for mask in range(1, 1 << m):
         S = [i for i in range(m) if mask >> i & 1]
-        ok = np.all(valid[:, S], axis=1)
-        if not ok.any():
+        rows = np.flatnonzero(np.all(vm[:, S], axis=1))
+        if rows.size == 0:
             continue
         n = len(S)
-        K = np.zeros((N, n + 1, n + 1))
-        K[:, :n, :n] = 2 * Q[:, S][:, :, S]
-        K[:, :n, n] = 1.0
-        K[:, n, :n] = 1.0
-        rhs = np.zeros((N, n + 1))
-        rhs[:, :n] = 2 * q[:, S]
-        rhs[:, n] = 1.0
-        try:
-            sol = np.linalg.solve(K, rhs[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            sol = np.einsum("nij,nj->ni", np.linalg.pinv(K), rhs)
-        w = sol[:, :n]
-        feas = ok & np.all(w >= -1e-12, axis=1) & np.all(np.isfinite(w), axis=1)
+        QS = Qm[rows][:, S][:, :, S]
+        if n == 1:
+            w = np.ones((rows.size, 1))
+        else:
+            K = np.zeros((rows.size, n + 1, n + 1))
+            K[:, :n, :n] = 2 * QS
+            K[:, :n, n] = 1.0
+            K[:, n, :n] = 1.0
+            rhs = np.zeros((rows.size, n + 1))
+            rhs[:, :n] = 2 * qm[rows][:, S]
+            rhs[:, n] = 1.0
+            try:
+                sol = np.linalg.solve(K, rhs[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                sol = np.einsum("nij,nj->ni", np.linalg.pinv(K), rhs)
+            w = sol[:, :n]
+        feas = np.all(w >= -1e-12, axis=1) & np.all(np.isfinite(w), axis=1)
         if not feas.any():
             continue
-        w = np.maximum(w, 0.0)
-        full = np.zeros((N, m))
-        full[:, S] = w
-        obj = np.einsum("na,nab,nb->n", full, Q, full) - 2 * np.einsum("na,na->n", q, full)
-        better = feas & (obj < best)
-        best[better] = obj[better]
-        out[better] = full[better]
+        rows, w, QS = rows[feas], np.maximum(w[feas], 0.0), QS[feas]
+        obj = np.einsum("na,nab,nb->n", w, QS, w) - 2 * np.einsum("na,na->n", qm[rows][:, S], w)
+        better = obj < bm[rows]
+        r = rows[better]
+        bm[r] = obj[better]
+        om[r] = 0.0
+        om[r[:, None], np.array(S)[None, :]] = w[better]
+    out[multi] = om
     return out
 
 
