@@ -383,7 +383,65 @@ class _FitJob:
         self.thread.start()
 
 
-class ARTDEF_OT_fit(bpy.types.Operator):
+class _WorkerModal:
+    """The interactive path shared by Fit and Preview Links: the job runs in a worker thread,
+    a modal timer shows its stage and progress, Esc cancels, the view can still be navigated.
+
+    The operator sets ``_what`` (status-bar word) and implements ``_finish(context, job)``.
+    """
+    _what = "job"
+    _job = None
+    _timer = None
+
+    def _start_modal(self, context, job):
+        self._job = job
+        wm = context.window_manager
+        wm.progress_begin(0, 1000)
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.modal_handler_add(self)
+        job.start_thread()
+        self._status(context, job.status_text())
+        return {'RUNNING_MODAL'}
+
+    def _status(self, context, text):
+        if context.workspace is not None:
+            context.workspace.status_text_set(
+                None if text is None else f"ArtDef {self._what}: {text} — Esc to cancel")
+
+    def _end(self, context):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        self._status(context, None)
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == 'ESC':
+            job.cancel.set()
+            self._end(context)
+            self.report({'WARNING'}, f"{self._what.capitalize()} cancelled; the scene is unchanged")
+            return {'CANCELLED'}
+        if event.type == 'TIMER':
+            context.window_manager.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0)))
+            self._status(context, job.status_text())
+            if not job.thread.is_alive():
+                self._end(context)
+                return self._finish(context, job)
+            return {'RUNNING_MODAL'}
+        if event.type in {'MIDDLEMOUSE', 'WHEELUPMOUSE', 'WHEELDOWNMOUSE', 'TRACKPADPAN',
+                          'TRACKPADZOOM', 'MOUSEMOVE', 'INBETWEEN_MOUSEMOVE'}:
+            return {'PASS_THROUGH'}  # let the user navigate the view while it runs
+        return {'RUNNING_MODAL'}  # block editing: the job works on a snapshot
+
+    def cancel(self, context):  # window closed / file loaded while running
+        if self._job is not None:
+            self._job.cancel.set()
+        self._end(context)
+
+
+class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
     """Fit an articulated rig to the active mesh's scan: vertex groups, an armature, residual shape keys, and load controls (Green's scans) or a replay action (tracked scans). Pseudo mode fits each load point separately and builds the rig of the load point chosen by Load Index. Esc cancels without changing the scene"""
     bl_idname = "artdef.fit"
     bl_label = "Fit Articulation"
@@ -425,8 +483,7 @@ class ARTDEF_OT_fit(bpy.types.Operator):
                                  soft_min=BUDGET_SOFT_MIN, soft_max=64.0, precision=2,
                                  description=MEMORY_BUDGET_DESCRIPTION)
 
-    _job = None
-    _timer = None
+    _what = "fit"
 
     @classmethod
     def poll(cls, context):
@@ -610,51 +667,7 @@ class ARTDEF_OT_fit(bpy.types.Operator):
         job = self._prepare(context)
         if job is None:
             return {'CANCELLED'}
-        self._job = job
-        wm = context.window_manager
-        wm.progress_begin(0, 1000)
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.modal_handler_add(self)
-        job.start_thread()
-        self._status(context, job.status_text())
-        return {'RUNNING_MODAL'}
-
-    def _status(self, context, text):
-        if context.workspace is not None:
-            context.workspace.status_text_set(
-                None if text is None else f"ArtDef fit: {text} — Esc to cancel")
-
-    def _end(self, context):
-        wm = context.window_manager
-        if self._timer is not None:
-            wm.event_timer_remove(self._timer)
-            self._timer = None
-        wm.progress_end()
-        self._status(context, None)
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == 'ESC':
-            job.cancel.set()
-            self._end(context)
-            self.report({'WARNING'}, "Fit cancelled; the scene is unchanged")
-            return {'CANCELLED'}
-        if event.type == 'TIMER':
-            context.window_manager.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0)))
-            self._status(context, job.status_text())
-            if not job.thread.is_alive():
-                self._end(context)
-                return self._finish(context, job)
-            return {'RUNNING_MODAL'}
-        if event.type in {'MIDDLEMOUSE', 'WHEELUPMOUSE', 'WHEELDOWNMOUSE', 'TRACKPADPAN',
-                          'TRACKPADZOOM', 'MOUSEMOVE', 'INBETWEEN_MOUSEMOVE'}:
-            return {'PASS_THROUGH'}  # let the user navigate the view while fitting
-        return {'RUNNING_MODAL'}  # block editing: the fit works on a snapshot
-
-    def cancel(self, context):  # window closed / file loaded while fitting
-        if self._job is not None:
-            self._job.cancel.set()
-        self._end(context)
+        return self._start_modal(context, job)
 
 
 # --------------------------------------------------------------------------
@@ -716,7 +729,7 @@ def _preview_job(obj, links):
     return _PreviewJob(obj.name, stored, reduce_arg, st.memory_budget * GB, links, seg)
 
 
-class ARTDEF_OT_preview_links(bpy.types.Operator):
+class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
     """Colour the faces of the active scan by link for a given link count (colour attribute 'artdef_links'); the clustering is cached, so changing the count is fast"""
     bl_idname = "artdef.preview_links"
     bl_label = "Preview Links"
@@ -725,8 +738,7 @@ class ARTDEF_OT_preview_links(bpy.types.Operator):
     links: IntProperty(name="Links", default=3, min=1, soft_max=64,
                        description="Number of links to show")
 
-    _job = None
-    _timer = None
+    _what = "preview"
 
     @classmethod
     def poll(cls, context):
@@ -759,51 +771,7 @@ class ARTDEF_OT_preview_links(bpy.types.Operator):
         if job.cached:
             job.run()
             return self._finish(context, job)
-        self._job = job
-        wm = context.window_manager
-        wm.progress_begin(0, 1000)
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.modal_handler_add(self)
-        job.start_thread()
-        self._status(context, job.status_text())
-        return {'RUNNING_MODAL'}
-
-    def _status(self, context, text):
-        if context.workspace is not None:
-            context.workspace.status_text_set(
-                None if text is None else f"ArtDef preview: {text} — Esc to cancel")
-
-    def _end(self, context):
-        wm = context.window_manager
-        if self._timer is not None:
-            wm.event_timer_remove(self._timer)
-            self._timer = None
-        wm.progress_end()
-        self._status(context, None)
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == 'ESC':
-            job.cancel.set()
-            self._end(context)
-            self.report({'WARNING'}, "Preview cancelled; the scene is unchanged")
-            return {'CANCELLED'}
-        if event.type == 'TIMER':
-            context.window_manager.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0)))
-            self._status(context, job.status_text())
-            if not job.thread.is_alive():
-                self._end(context)
-                return self._finish(context, job)
-            return {'RUNNING_MODAL'}
-        if event.type in {'MIDDLEMOUSE', 'WHEELUPMOUSE', 'WHEELDOWNMOUSE', 'TRACKPADPAN',
-                          'TRACKPADZOOM', 'MOUSEMOVE', 'INBETWEEN_MOUSEMOVE'}:
-            return {'PASS_THROUGH'}
-        return {'RUNNING_MODAL'}
-
-    def cancel(self, context):
-        if self._job is not None:
-            self._job.cancel.set()
-        self._end(context)
+        return self._start_modal(context, job)
 
     def _finish(self, context, job):
         """Report the job's outcome; on success colour the faces.  Main thread only."""
