@@ -52,7 +52,7 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
     """Estimate a fit; ``reduced`` says whether the full method would exceed ``budget`` bytes."""
     full = full_memory(triangles, fields, vertices)
     reduced = full > budget
-    u = triangles if not reduced else (units or min(triangles, reduced_units(budget)))
+    u = triangles if not reduced else (units or min(triangles, reduced_units(budget, fields)))
     pairs = u * (u - 1) / 2
     linkages = 1 if strategy == "summed" else fields
     seconds = 2 * pairs * fields / PAIRS_PER_SECOND + linkages * pairs * LINKAGE_SECONDS_PER_ENTRY
@@ -66,9 +66,18 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
 
 #: most patch representatives the reduced method uses (time grows with their square × fields)
 MAX_UNITS = 1000
+#: fewest patch representatives (below this the patches get too coarse for thin links)
+MIN_UNITS = 500
+#: U²·P budget of the reduced method's pairwise stage: with many fields it uses fewer patches
+PAIR_FIELD_WORK = 2.0e7
 
 
-def reduced_units(budget: float = DEFAULT_BUDGET) -> int:
+def reduced_units(budget: float = DEFAULT_BUDGET, fields: int | None = None) -> int:
     """How many patch representatives the reduced method uses: what a quarter of the budget
-    holds as a condensed matrix, at most :data:`MAX_UNITS`."""
-    return int(max(500, min(MAX_UNITS, (budget / 4 / 8 * 2) ** 0.5)))
+    holds as a condensed matrix, at most :data:`MAX_UNITS`, and with ``fields`` at most
+    √(PAIR_FIELD_WORK / fields) (so 1,000 up to 20 fields, 632 at 50, 500 from 80), never
+    fewer than :data:`MIN_UNITS`."""
+    u = min(MAX_UNITS, (budget / 4 / 8 * 2) ** 0.5)
+    if fields:
+        u = min(u, (PAIR_FIELD_WORK / fields) ** 0.5)
+    return int(max(MIN_UNITS, u))

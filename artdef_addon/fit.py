@@ -20,7 +20,7 @@ import numpy as np
 
 from . import clustering, cost as _cost, joints as _joints, merge as _merge, model as _model
 from . import patches as _patches
-from .metric import field_features, rest_geometry
+from .metric import _workers, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights
 
@@ -162,7 +162,7 @@ class Segmenter:
             self.unit_tri = np.arange(Tv)
             self.adjacency = self.tri_adjacency
         else:
-            self._build_patches(x0, fields, max_units or _cost.reduced_units(budget))
+            self._build_patches(x0, fields, max_units or _cost.reduced_units(budget, scan.n_fields))
         if scan.kind == "greens":
             self.groups = [[3 * k, 3 * k + 1, 3 * k + 2] for k in range(scan.n_loads)]
         else:
@@ -177,13 +177,25 @@ class Segmenter:
         weights = np.zeros(P)
         rest = rest_geometry(x0, self.faces)
 
+        def neighbours(p):
+            f = field_features(x0, fields[p], self.faces, rest)
+            z = f.zero_distance().max()
+            weights[p] = 1.0 / z if z > 1e-300 else 0.0
+            return weights[p] * _patches.pair_distances(f, self.tri_adjacency)
+
         def stream():
-            for p in range(P):
-                _report(self.progress, "features", 0.5 * p / P)
-                f = field_features(x0, fields[p], self.faces, rest)
-                z = f.zero_distance().max()
-                weights[p] = 1.0 / z if z > 1e-300 else 0.0
-                yield weights[p], f
+            # two fields at a time on two threads (numpy's element-wise work releases the GIL);
+            # cancelling is checked here, on the calling thread
+            from concurrent.futures import ThreadPoolExecutor
+            with ThreadPoolExecutor(min(2, _workers())) as ex:
+                pending = []
+                for p in range(P):
+                    pending.append(ex.submit(neighbours, p))
+                    if len(pending) >= 2:
+                        _report(self.progress, "features", 0.5 * (p - 1) / P)
+                        yield pending.pop(0).result()
+                for fut in pending:
+                    yield fut.result()
 
         centroids = x0[self.faces].mean(axis=1)
         size = max(2, int(np.ceil(4.0 * Tv / max_units)))

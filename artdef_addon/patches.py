@@ -74,17 +74,17 @@ def _coarsen(n: int, adjacency: np.ndarray, agree: np.ndarray, target: int, max_
     return labels
 
 
-def make_patches(features_iter, n_triangles: int, adjacency: np.ndarray, centroids: np.ndarray,
+def make_patches(neighbour_iter, n_triangles: int, adjacency: np.ndarray, centroids: np.ndarray,
                  max_size: int, target: int):
-    """Patches (T,) and their representative triangles (U,) from per-field features.
+    """Patches (T,) and their representative triangles (U,) from per-field neighbour distances.
 
-    ``features_iter`` yields ``(weight, FieldFeatures)`` one field at a time, so only one
-    field's features are alive at once.
+    ``neighbour_iter`` yields, one field at a time, w_p ε_p(i, j) for the rows of ``adjacency``
+    (:func:`pair_distances` times the field's weight), so no field's features need to outlive
+    its own distances; a = max_p of them.
     """
     agree = np.zeros(len(adjacency))
-    for w, f in features_iter:
-        if w:
-            np.maximum(agree, w * pair_distances(f, adjacency), out=agree)
+    for d in neighbour_iter:
+        np.maximum(agree, d, out=agree)
     labels = _coarsen(n_triangles, adjacency, agree, target, max_size)
     labels = split(labels[None], adjacency)
     n = labels.max() + 1

@@ -76,7 +76,7 @@ def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0)
         return _cost.estimate(triangles, fields, vertices, strategy, float("inf")), False
     if reduce == 'ON':
         # the estimate of the reduced branch, with the patch count this budget gives
-        units = min(triangles, _cost.reduced_units(budget))
+        units = min(triangles, _cost.reduced_units(budget, fields))
         return _cost.estimate(triangles, fields, vertices, strategy, 0.0, units=units), True
     return _cost.estimate(triangles, fields, vertices, strategy, budget), None
 
