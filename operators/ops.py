@@ -435,6 +435,21 @@ class _WorkerModal:
             return {'PASS_THROUGH'}  # let the user navigate the view while it runs
         return {'RUNNING_MODAL'}  # block editing: the job works on a snapshot
 
+    def _failed(self, job):
+        """Report a cancelled or failed job (True), or nothing (False).  Main thread only."""
+        err = job.error
+        what = self._what.capitalize()
+        if err is None:
+            return False
+        if isinstance(err, _fit.FitCancelled):
+            self.report({'WARNING'}, f"{what} cancelled; the scene is unchanged")
+        elif isinstance(err, (_scan.ScanError, ValueError)):
+            self.report({'ERROR'}, f"{what} failed: {err}")
+        else:
+            traceback.print_exception(type(err), err, err.__traceback__)
+            self.report({'ERROR'}, f"{what} failed ({type(err).__name__}): {err}")
+        return True
+
     def cancel(self, context):  # window closed / file loaded while running
         if self._job is not None:
             self._job.cancel.set()
@@ -542,16 +557,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
 
     def _finish(self, context, job):
         """Report the job's outcome; on success write the rig.  Main thread only."""
-        err = job.error
-        if isinstance(err, _fit.FitCancelled):
-            self.report({'WARNING'}, "Fit cancelled; the scene is unchanged")
-            return {'CANCELLED'}
-        if isinstance(err, (_scan.ScanError, ValueError)):
-            self.report({'ERROR'}, f"Fit failed: {err}")
-            return {'CANCELLED'}
-        if err is not None:
-            traceback.print_exception(type(err), err, err.__traceback__)
-            self.report({'ERROR'}, f"Fit failed ({type(err).__name__}): {err}")
+        if self._failed(job):
             return {'CANCELLED'}
         obj = bpy.data.objects.get(job.obj_name)
         if obj is None or obj.type != 'MESH' or len(obj.data.vertices) != len(job.scan.vertices):
@@ -775,16 +781,7 @@ class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
 
     def _finish(self, context, job):
         """Report the job's outcome; on success colour the faces.  Main thread only."""
-        err = job.error
-        if isinstance(err, _fit.FitCancelled):
-            self.report({'WARNING'}, "Preview cancelled; the scene is unchanged")
-            return {'CANCELLED'}
-        if isinstance(err, (_scan.ScanError, ValueError)):
-            self.report({'ERROR'}, str(err))
-            return {'CANCELLED'}
-        if err is not None:
-            traceback.print_exception(type(err), err, err.__traceback__)
-            self.report({'ERROR'}, f"Preview failed ({type(err).__name__}): {err}")
+        if self._failed(job):
             return {'CANCELLED'}
         seg, stored = job.segmenter, job.stored
         obj = bpy.data.objects.get(job.obj_name)
