@@ -128,7 +128,7 @@ def _from_homogeneous(A: np.ndarray, m: np.ndarray):
 PASS_BLOCK_BYTES = 64 * 2 ** 20
 
 
-def _data_pass(xh, fields, m, A=None, Y=None):
+def _data_pass(xh, fields, A=None, Y=None):
     """One streamed pass over the fields (the only O(P·N) work of an iteration; BLAS products).
 
     With ``A`` (P, L, 3, 4): q (N, L) = Σ_p X_p(v)·(A_l^p x̃_v) and xx (N,) = Σ_p ‖X_p(v)‖².
@@ -230,7 +230,7 @@ def _candidates(vertices, faces, labels, L, rings, radius, ground):
     return candidate_links(vertices, faces, inc, rings=rings, radius=radius)
 
 
-def _refine(vertices, fields, faces, labels, R, t, seam_weights, max_influences=4, rings=3, ground=None,
+def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, ground=None,
             radius=None, cand=None):
     """:func:`refined_weights` plus the total squared articulation error of the result.
 
@@ -242,14 +242,13 @@ def _refine(vertices, fields, faces, labels, R, t, seam_weights, max_influences=
     if ground is not None:
         R = np.concatenate([R, np.tile(np.eye(3), (P, 1, 1, 1))], axis=1)
         t = np.concatenate([t, np.zeros((P, 1, 3))], axis=1)
-        seam_weights = np.concatenate([seam_weights, np.zeros((N, 1))], axis=1)
     L = R.shape[1]
     if cand is None:
         cand = _candidates(vertices, faces, labels, L, rings, radius, ground)
     # every candidate's single-link squared error over all fields, from one data pass:
     # Σ_p ‖A_l x̃ − X_p‖² = x̃ᵀ G_ll x̃ − 2 q_l + Σ_p ‖X_p‖²
     m0, xh, A = _homogeneous(vertices, R, t)
-    stats = _data_pass(xh, fields, m0, A=A)
+    stats = _data_pass(xh, fields, A=A)
     q_all, xx = stats["q"], stats["xx"]
     G = _gram_links(A)
     Gd = G[np.arange(L), np.arange(L)]                                   # (L, 4, 4)
@@ -297,7 +296,7 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
     motion) is one more candidate for those vertices and their ``rings`` rings, returned as
     column L.
     """
-    return _refine(vertices, fields, faces, labels, R, t, seam_weights, max_influences, rings, ground, radius)[0]
+    return _refine(vertices, fields, faces, labels, R, t, max_influences, rings, ground, radius)[0]
 
 
 def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray, R: np.ndarray,
@@ -316,7 +315,7 @@ def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray
     m0, xh, A = _homogeneous(vertices, R, t)
     Y = (weights[:, :, None] * xh[:, None, :]).reshape(N, L * 4)
     C = (Y.T @ Y).reshape(L, 4, L, 4).transpose(0, 2, 1, 3)             # C[k, j] (4, 4)
-    M = _data_pass(xh, fields, m0, Y=Y)["M"]                             # (P, L, 4, 3)
+    M = _data_pass(xh, fields, Y=Y)["M"]                             # (P, L, 4, 3)
     count = np.count_nonzero(weights > 1e-6, axis=0)
     D = np.tile(np.eye(3), (P, 1, 1))
     for j in range(L):
@@ -356,10 +355,10 @@ def alternate(vertices, fields, faces, labels, R, t, seam_weights, iterations: i
     kw["radius"] = radius
     L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
     kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
-    w, e = _refine(vertices, fields, faces, labels, R, t, seam_weights, **kw)
+    w, e = _refine(vertices, fields, faces, labels, R, t, **kw)
     for _ in range(iterations):
         R1, t1 = update_motions(vertices, fields, w, R, t)
-        w1, e1 = _refine(vertices, fields, faces, labels, R1, t1, w, **kw)
+        w1, e1 = _refine(vertices, fields, faces, labels, R1, t1, **kw)
         if e1 > e:      # round-off only: keep the better pair
             break
         done = e - e1 <= tol * e

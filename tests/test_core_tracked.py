@@ -104,7 +104,7 @@ def test_skin_statistics_match_direct_sums_and_leave_fields_alone(P, monkeypatch
     m, xh, A = skinning._homogeneous(x, R, t)
     w = rng.random((N, L))
     Y = (w[:, :, None] * xh[:, None, :]).reshape(N, 4 * L)
-    out = skinning._data_pass(xh, f, m, A=A, Y=Y)
+    out = skinning._data_pass(xh, f, A=A, Y=Y)
     X = xh[None, :, :3] + f
     assert np.array_equal(f, f0)
     assert np.allclose(out["q"], np.einsum("pni,plij,nj->nl", X, A, xh), atol=1e-10)

@@ -125,18 +125,22 @@ def test_blend_reopens_with_the_rig(fitted, rod_scan):
     assert parented == "True" and deformed == "True"
 
 
-def test_glb_passes_khronos_validator(fitted):
+def _validate(path):
     node = shutil.which("node")
     if node is None:
         pytest.skip("node is not installed (apt-get install nodejs): glTF validator not run")
     if not (VALIDATOR / "package.json").is_file():
         pytest.skip("gltf-validator not installed in .tools/ (scripts/test.sh installs it)")
-    proc = subprocess.run([node, str(VALIDATE_JS), str(fitted["glb"]), "--json"],
+    proc = subprocess.run([node, str(VALIDATE_JS), str(path), "--json"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode in (0, 1), proc.stderr
     issues = json.loads(proc.stdout)["issues"]
-    errors = [m for m in issues["messages"] if m["severity"] == 0]
-    assert issues["numErrors"] == 0, errors
+    assert issues["numErrors"] == 0, [m for m in issues["messages"] if m["severity"] == 0]
+    return proc
+
+
+def test_glb_passes_khronos_validator(fitted):
+    proc = _validate(fitted["glb"])
     assert proc.returncode == 0
 
 
@@ -189,19 +193,6 @@ def test_glb_mesh_morph_targets_and_animation(fitted, rod_scan):
     times = np.concatenate([accessor(gltf, binary, s["input"]).ravel()
                             for a in animations for s in a["samplers"]])
     assert times.max() > times.min(), "animation has a single key"
-
-
-def _validate(path):
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("node is not installed (apt-get install nodejs): glTF validator not run")
-    if not (VALIDATOR / "package.json").is_file():
-        pytest.skip("gltf-validator not installed in .tools/ (scripts/test.sh installs it)")
-    proc = subprocess.run([node, str(VALIDATE_JS), str(path), "--json"],
-                          capture_output=True, text=True, timeout=120)
-    assert proc.returncode in (0, 1), proc.stderr
-    issues = json.loads(proc.stdout)["issues"]
-    assert issues["numErrors"] == 0, [m for m in issues["messages"] if m["severity"] == 0]
 
 
 @pytest.fixture(scope="module")
