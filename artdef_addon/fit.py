@@ -410,10 +410,11 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
         return R, t
 
     R, t = link_motions(labels, medoids)
+    swaps = 0
     if _merge.DOMINANT_RELABEL and scan.kind != "greens" and L > 1 and P > 0:
         # tracked scans: faces to the link that dominates their skin, then the links' motions
         # again (Green's scans keep the paper's segmentation)
-        new = _merge.dominant_labels(x0, fields, faces, labels, R, t, units=seg.valid[seg.unit_tri])
+        new, swaps = _merge.dominant_labels(x0, fields, faces, labels, R, t, units=seg.valid[seg.unit_tri])
         if np.any(new != labels):
             labels = new
             if motion != "lsq":
@@ -529,6 +530,9 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
                     residual=residual, link_residuals=link_res, rms_articulation=rms_art,
                     rms_total=rms_tot, articulation_error_percent=kg, motion=motion, timings=timings,
                     probe_load=scan.probe_load)
+    if swaps:
+        res.notes.append(f"{swaps} link swap(s): links that explained little were re-seeded where the skin fitted "
+                         f"worst (tracked scans)")
     if scan.kind == "greens":
         res.kappa = np.transpose(params, (1, 2, 0)) / scan.probe_load
         res.residual = residual
@@ -626,7 +630,7 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     timings.update(result.timings)
     timings["total"] = time.perf_counter() - t_start
     result.timings = timings
-    result.notes = list(seg.notes)
+    result.notes = list(seg.notes) + result.notes
     _report(progress, "done", 1.0)
     return result
 

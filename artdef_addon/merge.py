@@ -238,10 +238,12 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
 
 #: relabel every face by its dominant skin weight after the link motions are known (see below)
 DOMINANT_RELABEL = True
+#: tracked scans: link swaps (:mod:`swaps`) inside the decomposition that decides the dominant labels
+SWAP_LINKS = True
 
 
 def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
-                    R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None) -> np.ndarray:
+                    R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None):
     """Give every face to the link that dominates its skin (an addition to the paper, issue 5).
 
     On a smoothly skinned character the motion of a triangle between two bones is a blend of
@@ -250,15 +252,23 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     blended can lose its link to its neighbours. Here the skin is decomposed from the links' own
     motions (:func:`skinning.alternate`: per-vertex convex weights over the nearby links and the
     link motions, alternated as in SSDR), and each face goes to the link with the largest summed
-    weight over its three vertices — the usual definition of a face's bone in rigged data. A link
+    weight over its three vertices — the usual definition of a face's bone in rigged data. With
+    ``SWAP_LINKS`` the decomposition first moves links that explain little to where the skin
+    fits worst (:func:`swaps.swap_links`), so a sliver link at a seam can become a short bone. A link
     that would own no face — or none of the faces ``units`` that carry the link motions (the
     clustered triangles, or the patch representatives of the reduced method) — keeps its faces.
-    ``labels`` (T,) over all faces, ``R`` (P, k, 3, 3), ``t`` (P, k, 3). Returns the new (T,) labels.
+    ``labels`` (T,) over all faces, ``R`` (P, k, 3, 3), ``t`` (P, k, 3). Returns the new (T,) labels
+    and the number of swaps kept.
     """
     from .skinning import alternate, blend_weights
     k = R.shape[1]
     # a rough skin is enough for the argmax: fewer rounds than the final refined skin
-    w, _, _ = alternate(x0, fields, faces, labels, R, t, blend_weights(x0, faces, labels, k), iterations=10)
+    if SWAP_LINKS:
+        from .swaps import swap_links
+        w, _, _, labels, swaps = swap_links(x0, fields, faces, labels, R, t, units=units)
+    else:
+        swaps = 0
+        w, _, _ = alternate(x0, fields, faces, labels, R, t, blend_weights(x0, faces, labels, k), iterations=10)
     new = w[faces, :k].sum(axis=1).argmax(axis=1)
     for _ in range(k):
         owned = np.bincount(new if units is None else new[units], minlength=k) > 0
@@ -266,4 +276,4 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
             break
         keep = ~owned[labels]
         new[keep] = labels[keep]
-    return new
+    return new, swaps

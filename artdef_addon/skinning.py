@@ -231,11 +231,14 @@ def _candidates(vertices, faces, labels, L, rings, radius, ground):
 
 
 def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, ground=None,
-            radius=None, cand=None):
+            radius=None, cand=None, details=False):
     """:func:`refined_weights` plus the total squared articulation error of the result.
 
     ``cand`` is the candidate matrix when the caller already has it (it depends on the labels
-    only, so an alternation computes it once).
+    only, so an alternation computes it once). With ``details`` a third value holds each
+    vertex's candidate links ``cols`` (N, m), its normal equations ``Q`` (N, m, m), ``q`` (N, m),
+    ``xx`` (N,), its weights on the candidates ``wc`` (N, m) and the single-link errors ``err``
+    (L, N) (inf off the candidates) — what :mod:`swaps` needs to price removing a link.
     """
     N = vertices.shape[0]
     P = R.shape[0]
@@ -275,6 +278,8 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     out /= out.sum(axis=1, keepdims=True)
     wc = np.take_along_axis(out, cols, axis=1)
     total = float(np.sum(np.einsum("na,nab,nb->n", wc, Q, wc) - 2 * np.einsum("na,na->n", q, wc) + xx))
+    if details:
+        return out, max(total, 0.0), dict(cols=cols, valid=valid, Q=Q, q=q, xx=xx, wc=wc, err=err)
     return out, max(total, 0.0)
 
 
@@ -352,6 +357,12 @@ def alternate(vertices, fields, faces, labels, R, t, seam_weights, iterations: i
     fraction ``tol``. Returns ``(weights, R, t)``; the error never increases from one step to
     the next (each step is an exact minimiser given the other).
     """
+    return _alternate(vertices, fields, faces, labels, R, t, iterations, tol, radius, **kw)[:3]
+
+
+def _alternate(vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS, **kw):
+    """:func:`alternate` returning ``(weights, R, t, error)``: error is the total squared
+    articulation error Σ_p Σ_v ‖x̂ − x‖² of the returned skin."""
     kw["radius"] = radius
     L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
     kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
@@ -365,4 +376,4 @@ def alternate(vertices, fields, faces, labels, R, t, seam_weights, iterations: i
         w, R, t, e = w1, R1, t1, e1
         if done:
             break
-    return w, R, t
+    return w, R, t, e

@@ -1,0 +1,177 @@
+"""Swap links: drop the least useful link, re-seed it where the skin fits worst (issue 5).
+
+An addition to the paper for tracked scans. The greedy merge of §5.2 never revisits a decision,
+so with a fixed link count a smoothly skinned character can end with a link spent on a sliver of
+blended triangles (the palm side of a finger seam) while two short true bones (two finger
+segments) share one link. Those links then feed the skinning decomposition
+(:func:`skinning.alternate`, SSDR-style), whose error E = Σ_p Σ_v ‖Σ_l w_vl (R_l^p x_v + t_l^p) − x_v^p‖²
+measures what the rig cannot explain. As Dem Bones re-initialises its weakest bones, a swap
+
+1. prices removing each link l from the decomposition's own normal equations: every vertex that
+   uses l falls back to the better of its other weights renormalised and its best other single
+   candidate link (an upper bound on the re-solved error);
+2. re-seeds the cheapest link at the clustered triangle whose three vertices the skin fits worst,
+   with the least-squares motion (weighted Kabsch/Arun, METHOD §6) of that triangle's one-ring;
+   the removed link's faces go to their best other candidate link;
+3. re-runs the decomposition and keeps the swap only if E falls by at least ``MIN_GAIN``.
+
+The link count never changes and E falls at every kept swap. Green's scans keep the paper's
+segmentation (this pass is not used for them).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+
+#: a swap is kept when it lowers the decomposition error by at least this fraction
+MIN_GAIN = 0.005
+#: below this Karni–Gotsman ratio ‖X − X̂‖/‖X − X̄‖ the fields count as explained (no swaps)
+EXACT = 1e-4
+#: rounds of the decomposition per trial (the final refined skin runs to convergence)
+TRIAL_ROUNDS = 10
+
+
+class _Moments:
+    """Additive moments of a weighted point set over P fields."""
+    __slots__ = ("w", "a", "b", "ab", "qa", "qb")
+
+    def __init__(self, w, a, b, ab, qa, qb):
+        self.w, self.a, self.b, self.ab, self.qa, self.qb = w, a, b, ab, qa, qb
+
+
+def _moments(x0, fields, faces, fidx) -> _Moments:
+    vid, cnt = np.unique(faces[fidx].reshape(-1), return_counts=True)
+    w = cnt.astype(np.float64)
+    a = x0[vid]
+    b = a[None] + fields[:, vid]
+    return _Moments(w.sum(), w @ a, np.einsum("n,pnj->pj", w, b), np.einsum("n,ni,pnj->pij", w, a, b),
+                    float(w @ np.einsum("ni,ni->n", a, a)), np.einsum("n,pn->p", w, np.einsum("pni,pni->pn", b, b)))
+
+
+def _kabsch(m: _Moments):
+    """Least-squares motions (P,3,3), (P,3) and the residual of moments ``m``."""
+    am = m.a / m.w
+    bm = m.b / m.w
+    H = m.ab - m.w * am[None, :, None] * bm[:, None, :]
+    U, s, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(H))
+    d[d == 0] = 1.0
+    D = np.ones((len(d), 3))
+    D[:, 2] = d
+    R = np.einsum("pji,pj,pkj->pik", Vt, D, U)            # V D Uᵀ
+    t = bm - np.einsum("pij,j->pi", R, am)
+    ca = m.qa - m.w * am @ am
+    cb = m.qb - m.w * np.einsum("pi,pi->p", bm, bm)
+    E = ca + cb - 2.0 * (s[:, 0] + s[:, 1] + d * s[:, 2])
+    return R, t, float(np.maximum(E, 0.0).sum())
+
+
+def _quad(w, Q, q, xx):
+    return np.einsum("na,nab,nb->n", w, Q, w) - 2 * np.einsum("na,na->n", q, w) + xx
+
+
+def removal_costs(info: dict, L: int):
+    """Rise of the decomposition error if each link were dropped (see module docstring, step 1),
+    and each vertex's current error (N,). ``info`` is :func:`skinning._refine`'s detail dict."""
+    cols, valid, Q, q, xx, wc, err = (info[k] for k in ("cols", "valid", "Q", "q", "xx", "wc", "err"))
+    cur = np.maximum(_quad(wc, Q, q, xx), 0.0)
+    cost = np.zeros(L)
+    for j in range(cols.shape[1]):
+        v = np.flatnonzero(valid[:, j] & (wc[:, j] > 0))
+        if v.size == 0:
+            continue
+        l = cols[v, j]
+        w2 = wc[v].copy()
+        w2[:, j] = 0.0
+        s = w2.sum(axis=1)
+        ok = s > 1e-9
+        blend = np.full(v.size, np.inf)
+        w2[ok] /= s[ok, None]
+        blend[ok] = _quad(w2[ok], Q[v[ok]], q[v[ok]], xx[v[ok]])
+        single = err[:L, v].copy()
+        single[l, np.arange(v.size)] = np.inf
+        new = np.minimum(blend, single.min(axis=0))
+        np.add.at(cost, l, np.where(np.isfinite(new), new - cur[v], np.inf))
+    return cost, cur
+
+
+def _one_ring(faces, f, labels):
+    """Faces sharing a vertex with face ``f`` and carrying its label."""
+    touch = np.isin(faces, faces[f]).any(axis=1) & (labels == labels[f])
+    return np.flatnonzero(touch)
+
+
+def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
+               R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None,
+               max_swaps: int | None = None, candidates: int = 2, seed_links: int = 3):
+    """Skinning decomposition with link swaps (see module docstring).
+
+    ``labels`` (T,) link of every face; ``R`` (P, L, 3, 3), ``t`` (P, L, 3) the links' motions;
+    ``units`` the faces that carry the links' robust motions (clustered triangles; default all),
+    where seeds are taken. Returns ``(weights (N, L), labels, swaps)``: the decomposition's
+    weights and the labels the swaps left (each face's link before the caller re-labels by skin).
+    """
+    from .skinning import SKIN_RADIUS, _alternate, _refine
+    labels = np.array(labels, copy=True)
+    L = R.shape[1]
+    P = fields.shape[0]
+    units = np.arange(len(labels)) if units is None else np.asarray(units)
+    max_swaps = L if max_swaps is None else max_swaps
+
+    def decompose(labels, R, t):
+        w, R, t, e = _alternate(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS)
+        return w, R, t, e
+
+    w, R, t, e = decompose(labels, R, t)
+    mean = fields.mean(axis=0)
+    spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
+    if e <= EXACT ** 2 * spread:      # the skin already explains the fields: nothing to swap
+        return w, R, t, labels, 0
+    swaps = 0
+    tried = set()
+    while swaps < max_swaps and L > 2 and P > 0:
+        _, _, info = _refine(x0, fields, faces, labels, R, t, details=True, radius=SKIN_RADIUS)
+        cost, cur = removal_costs(info, L)
+        face_err = cur[faces].sum(axis=1)
+        kept = False
+        # the worst-fitted clustered triangle of each link, the worst links first
+        worst = np.full(L, -1)
+        order = units[np.argsort(-face_err[units], kind="stable")]
+        lab_o = labels[order]
+        first = np.unique(lab_o, return_index=True)
+        worst[first[0]] = order[first[1]]
+        seeds = worst[np.argsort(-np.where(worst >= 0, face_err[np.maximum(worst, 0)], -np.inf))]
+        trials = [(int(l), int(sd)) for l in np.argsort(cost)[:candidates] if np.isfinite(cost[l])
+                  for sd in seeds[:seed_links] if sd >= 0 and labels[sd] != l]
+        for l, seed in trials:
+            if (l, seed) in tried:
+                continue
+            tried.add((l, seed))
+            new = labels.copy()
+            mine = np.flatnonzero(labels == l)
+            ferr = info["err"][:L][:, faces[mine]].sum(axis=2)          # (L, n) summed over corners
+            ferr[l] = np.inf
+            pick = np.argmin(ferr, axis=0)
+            lost = ~np.isfinite(ferr.min(axis=0))
+            if lost.any():  # no other candidate link nearby: the nearest face of another link
+                from scipy.spatial import cKDTree
+                other = np.flatnonzero(labels != l)
+                cen = x0[faces].mean(axis=1)
+                pick[lost] = labels[other[cKDTree(cen[other]).query(cen[mine[lost]])[1]]]
+            new[mine] = pick
+            ring = _one_ring(faces, seed, labels)
+            new[ring] = l
+            if np.any(np.bincount(new[units], minlength=L) == 0):
+                continue
+            R1, t1 = R.copy(), t.copy()
+            R1[:, l], t1[:, l], _ = _kabsch(_moments(x0, fields, faces, ring))
+            w1, R1, t1, e1 = decompose(new, R1, t1)
+            if e1 < (1.0 - MIN_GAIN) * e:
+                labels, w, R, t, e = new, w1, R1, t1, e1
+                swaps += 1
+                kept = True
+                break
+        if not kept:
+            break
+    return w, R, t, labels, swaps
+
