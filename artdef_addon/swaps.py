@@ -21,7 +21,6 @@ segmentation (this pass is not used for them).
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import coo_matrix
 
 #: a swap is kept when it lowers the decomposition error by at least this fraction
 MIN_GAIN = 0.005
@@ -33,7 +32,7 @@ TRIAL_ROUNDS = 10
 
 class _Moments:
     """Additive moments of a weighted point set over P fields."""
-    __slots__ = ("w", "a", "b", "ab", "qa", "qb")
+    __slots__ = ("a", "ab", "b", "qa", "qb", "w")
 
     def __init__(self, w, a, b, ab, qa, qb):
         self.w, self.a, self.b, self.ab, self.qa, self.qb = w, a, b, ab, qa, qb
