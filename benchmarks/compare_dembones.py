@@ -18,9 +18,10 @@ X̂ = Σ_b w_b M_b x0 with its per-frame bone matrices.
 
 Joint error (artdef only; Dem Bones gives no joints): for each true joint between two bones that
 both own faces, the distance from the true joint (the child bone's rest head) to the fitted joint
-between the fitted links matched to those bones (each true link → the fitted link that holds most
-of its triangles), as % of the bounding-box diagonal. When both true bones fall in one fitted link
-the joint counts as missed.
+between the fitted links matched to those bones (:func:`artdef_addon.quality.true_joint_errors`,
+the tests' definition: each true bone → the fitted link holding most of it among the links it is
+the majority of), as % of the bounding-box diagonal. When a true bone is the majority of no link,
+or both bones end in one link, the joint counts as missed ("merged").
 
 Usage (from the repository root):
 
@@ -77,29 +78,10 @@ def face_labels_from_weights(faces: np.ndarray, weights_nl: np.ndarray) -> np.nd
 
 
 def joint_errors(truth: dict, res, diag: float):
-    """Per true joint between two face-owning bones: error (% diag) of artdef's fitted joint, NaN if missed."""
-    gl = truth["face_labels"]
-    owners = set(np.unique(gl).tolist())
-    # for every true link the fitted link holding most of its triangles
-    table = np.zeros((gl.max() + 1, res.face_labels.max() + 1))
-    np.add.at(table, (gl, res.face_labels), 1)
-    match = table.argmax(axis=1)
-    errs = []
-    for j, q in enumerate(truth["parents"]):
-        if q < 0 or j not in owners or int(q) not in owners:
-            continue
-        a, b = int(match[j]), int(match[q])
-        if a == b:
-            errs.append(np.nan)
-            continue
-        if res.parents[a] == b:
-            c = res.joints[a]
-        elif res.parents[b] == a:
-            c = res.joints[b]
-        else:  # not adjacent in the fitted tree: the matched child link's own joint
-            c = res.joints[a] if np.all(np.isfinite(res.joints[a])) else res.joints[b]
-        errs.append(100.0 * np.linalg.norm(c - truth["joints"][j]) / diag if np.all(np.isfinite(c)) else np.nan)
-    return np.array(errs)
+    """Per true joint between two face-owning bones: error (% diag) of artdef's fitted joint, inf if
+    the two bones share a link. The definition the tests use (:func:`quality.true_joint_errors`)."""
+    _, err = quality.true_joint_errors(res, truth["joints"], truth["parents"], truth["face_labels"])
+    return 100.0 * err / diag
 
 
 # --------------------------------------------------------------------------- methods
