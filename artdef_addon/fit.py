@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from . import clustering, cost as _cost, joints as _joints, merge as _merge, model as _model
-from . import patches as _patches
+from . import patches as _patches, swaps as _swaps
 from .metric import _workers, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights
@@ -530,6 +530,10 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
                     residual=residual, link_residuals=link_res, rms_articulation=rms_art,
                     rms_total=rms_tot, articulation_error_percent=kg, motion=motion, timings=timings,
                     probe_load=scan.probe_load)
+    if _merge.DOMINANT_RELABEL and _merge.SWAP_LINKS and scan.kind != "greens" and L > 2 \
+            and N * P > _swaps.SWAP_BUDGET:
+        res.notes.append(f"link swaps skipped: {N:,} vertices × {P} fields is above their budget of "
+                         f"{_swaps.SWAP_BUDGET:,} (each trial re-runs the skin decomposition)")
     if swaps:
         res.notes.append(f"{swaps} link swap(s): links that explained little were re-seeded where the skin fitted "
                          f"worst (tracked scans)")

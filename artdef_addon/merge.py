@@ -254,7 +254,8 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     link motions, alternated as in SSDR), and each face goes to the link with the largest summed
     weight over its three vertices — the usual definition of a face's bone in rigged data. With
     ``SWAP_LINKS`` the decomposition first moves links that explain little to where the skin
-    fits worst (:func:`swaps.swap_links`), so a sliver link at a seam can become a short bone. A link
+    fits worst (:func:`swaps.swap_links`), so a sliver link at a seam can become a short bone
+    (scans of up to ``swaps.SWAP_BUDGET`` vertex-fields). A link
     that would own no face — or none of the faces ``units`` that carry the link motions (the
     clustered triangles, or the patch representatives of the reduced method) — keeps its faces.
     ``labels`` (T,) over all faces, ``R`` (P, k, 3, 3), ``t`` (P, k, 3). Returns the new (T,) labels
@@ -263,8 +264,8 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     from .skinning import alternate, blend_weights
     k = R.shape[1]
     # a rough skin is enough for the argmax: fewer rounds than the final refined skin
-    if SWAP_LINKS:
-        from .swaps import swap_links
+    from .swaps import SWAP_BUDGET, swap_links
+    if SWAP_LINKS and x0.shape[0] * fields.shape[0] <= SWAP_BUDGET:
         w, _, _, labels, swaps = swap_links(x0, fields, faces, labels, R, t, units=units)
     else:
         swaps = 0
