@@ -18,8 +18,13 @@ import time
 
 import numpy as np
 
-from . import clustering, cost as _cost, joints as _joints, merge as _merge, model as _model
-from . import patches as _patches, swaps as _swaps
+from . import clustering
+from . import cost as _cost
+from . import joints as _joints
+from . import merge as _merge
+from . import model as _model
+from . import patches as _patches
+from . import swaps as _swaps
 from .metric import _workers, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights
