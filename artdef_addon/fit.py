@@ -133,6 +133,8 @@ class Segmenter:
         self.overcut = 1.5
         self.scan = scan
         self.progress = progress
+        # distance sums of clusters, reused when the same scan is segmented again (link sweeps)
+        self.sum_cache = _merge.SumCache()
         self.notes = []
         T = scan.n_faces
         bad = np.zeros(T, dtype=bool)
@@ -255,7 +257,8 @@ class Segmenter:
         w = self.weights[fields]
         cb = None if self.progress is None else (lambda f: self.progress(stage, f))
         try:
-            return _merge.merge_clusters(feats, w, init, k, progress=cb, unit_size=self.unit_size)
+            return _merge.merge_clusters(feats, w, init, k, progress=cb, unit_size=self.unit_size,
+                                         cache=self.sum_cache, tag=_merge.member_key(np.asarray(fields)))
         except _merge._Cancel:
             raise FitCancelled(f"cancelled during {stage}") from None
 
@@ -313,7 +316,9 @@ class Segmenter:
         labels_u, medoids, sums = self._merge(init, all_fields, k, "merge")
         k = medoids.shape[0]
         feats = [self.features[p] for p in all_fields]
-        medoids = _merge.link_medoids(feats, self.weights[all_fields], labels_u, k, unit_size=self.unit_size)
+        tag = _merge.member_key(np.asarray(all_fields))
+        medoids = _merge.link_medoids(feats, self.weights[all_fields], labels_u, k, unit_size=self.unit_size,
+                                      cache=self.sum_cache, tag=tag)
         labels = labels_u[self.unit_of]
         if self.refine:
             R = np.stack([self.features[p].R[medoids[:, i]] for i, p in enumerate(all_fields)])
@@ -323,7 +328,7 @@ class Segmenter:
                                          fixed=self.unit_tri[np.unique(medoids)],
                                          iterations=200 if self.reduced else 10)
             medoids = _merge.link_medoids(feats, self.weights[all_fields], labels[self.unit_tri], k,
-                                          unit_size=self.unit_size)
+                                          unit_size=self.unit_size, cache=self.sum_cache, tag=tag)
         self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0
         return labels, medoids, all_fields
 

@@ -13,6 +13,8 @@ from an evenly spaced subsample (a documented approximation that keeps big links
 """
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from .metric import FieldFeatures, cross_sums, distance_block, distance_row_sums
@@ -31,17 +33,57 @@ class _Cancel(Exception):
     pass
 
 
+def member_key(m: np.ndarray) -> bytes:
+    """A digest of a member array (order included): the key of its cached sums."""
+    return hashlib.blake2b(np.ascontiguousarray(m, dtype=np.int64).tobytes(), digest_size=16).digest()
+
+
+class SumCache:
+    """Per-cluster distance sums kept across merges of one :class:`fit.Segmenter`.
+
+    Sweeping the link count (``--links auto``, Preview Links) re-merges mostly the same clusters:
+    each cut of a tree differs from the next by a split or two. Every cached value is a pure
+    function of its key (the fields, and the member arrays in order), so a cached fit is
+    bit-identical to a fresh one. When the values exceed ``max_bytes`` the cache starts over.
+    """
+
+    def __init__(self, max_bytes: int = 256 * 2 ** 20):
+        self.max_bytes = max_bytes
+        self._d: dict = {}
+        self.nbytes = 0
+        self.hits = 0
+
+    def get(self, key):
+        v = self._d.get(key)
+        if v is not None:
+            self.hits += 1
+        return v
+
+    def put(self, key, value):
+        nb = sum(a.nbytes for a in (value if isinstance(value, tuple) else (value,)))
+        if self.nbytes + nb > self.max_bytes:
+            self._d.clear()
+            self.nbytes = 0
+        self._d[key] = value
+        self.nbytes += nb
+        return value
+
+
 #: clusters larger than this estimate their medoid sums from this many members
 MEDOID_SAMPLE = 1024
 
 
 def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.ndarray,
-                   k: int, progress=None, sample: int | None = MEDOID_SAMPLE, unit_size=None):
+                   k: int, progress=None, sample: int | None = MEDOID_SAMPLE, unit_size=None,
+                   cache: SumCache | None = None, tag: bytes = b""):
     """Agglomerate the clusters of ``init`` (T,) down to ``k`` on Λ.
 
     ``unit_size`` (T,) is how many triangles each clustered unit stands for (the patch sizes of
-    the reduced method; default 1): the |A| of Λ counts triangles, not patches. Returns ``(labels (T,), medoids (k, P), row_sums (P, T))`` with labels 0..k−1 ordered by
-    the smallest triangle index of each link, and the medoid triangle of each link per field.
+    the reduced method; default 1): the |A| of Λ counts triangles, not patches. ``cache`` keeps
+    the initial clusters' row sums and each merge's cross sums for later calls with the same
+    features (``tag`` names them). Returns ``(labels (T,), medoids (k, P), row_sums (P, T))``
+    with labels 0..k−1 ordered by the smallest triangle index of each link, and the medoid
+    triangle of each link per field.
     """
     T = init.shape[0]
     P = len(features)
@@ -50,12 +92,19 @@ def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.
     members = _groups(init, nc)
     us = (lambda m: None) if unit_size is None else (lambda m: unit_size[m])  # noqa: E731
     sums = np.zeros((P, T))
-    for p, f in enumerate(features):
-        if weights[p] == 0:
+    for m in members:
+        if len(m) < 2:
             continue
-        for m in members:
-            if len(m) > 1:
-                sums[p, m] = distance_row_sums(f, m, m, sample=sample, col_weights=us(m))
+        key = (tag, b"rows", member_key(m))
+        block = None if cache is None else cache.get(key)
+        if block is None:
+            block = np.zeros((P, len(m)))
+            for p, f in enumerate(features):
+                if weights[p]:
+                    block[p] = distance_row_sums(f, m, m, sample=sample, col_weights=us(m))
+            if cache is not None:
+                cache.put(key, block)
+        sums[:, m] = block
     medoid = np.zeros((nc, P), dtype=np.int64)
     for c, m in enumerate(members):
         medoid[c] = m[np.argmin(sums[:, m], axis=1)]
@@ -79,11 +128,17 @@ def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.
         if a > b:
             a, b = b, a
         A, B = members[a], members[b]
-        for p, f in enumerate(features):
-            if weights[p]:
-                sa, sb = cross_sums(f, A, B, sample=sample, wA=us(A), wB=us(B))
-                sums[p, A] += sa
-                sums[p, B] += sb
+        key = (tag, b"cross", member_key(A), member_key(B))
+        cross = None if cache is None else cache.get(key)
+        if cross is None:
+            cross = (np.zeros((P, len(A))), np.zeros((P, len(B))))
+            for p, f in enumerate(features):
+                if weights[p]:
+                    cross[0][p], cross[1][p] = cross_sums(f, A, B, sample=sample, wA=us(A), wB=us(B))
+            if cache is not None:
+                cache.put(key, cross)
+        sums[:, A] += cross[0]
+        sums[:, B] += cross[1]
         m = np.concatenate([A, B])
         members[a] = m
         members[b] = np.zeros(0, dtype=np.int64)
@@ -186,7 +241,8 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
 
 
 def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.ndarray, k: int,
-                 sample: int | None = 512, unit_size=None) -> np.ndarray:
+                 sample: int | None = 512, unit_size=None, cache: SumCache | None = None,
+                 tag: bytes = b"") -> np.ndarray:
     """The motion centroid of every link in every field, with a 50% breakdown point.
 
     m_l^p = argmin_{i∈l} median_{j∈l} ε_p(i, j): the member whose motion agrees exactly with at
@@ -195,7 +251,8 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
     plain sum of §5.2 drifts toward the seams once they are about a third of the link). Used
     for the final link motions; the merge keeps the sum, which it can update incrementally.
     With ``unit_size`` (patch sizes of the reduced method) the median is weighted by the
-    triangles each unit stands for. Returns (k, P) indices into the clustered units.
+    triangles each unit stands for. ``cache`` / ``tag`` as in :func:`merge_clusters` (a link's
+    medoids depend on its members only). Returns (k, P) indices into the clustered units.
     """
     from .metric import _subsample
 
@@ -214,6 +271,11 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
     out = np.zeros((k, P), dtype=np.int64)
     groups = _groups(labels, k)
     for l, m in enumerate(groups):
+        key = (tag, b"medoid", sample, member_key(m))
+        hit = None if cache is None else cache.get(key)
+        if hit is not None:
+            out[l] = hit
+            continue
         ref = reference(m)
         # candidates: every member of a small link, an even subsample of twice ``sample`` of a
         # big one (a rigid core is most of a link, so the subsample holds core members)
@@ -233,6 +295,8 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
                 out[l, p] = pool[cand[np.argmin(sums)]]
             else:
                 out[l, p] = pool[cand[0]]
+        if cache is not None:
+            cache.put(key, out[l].copy())
     return out
 
 

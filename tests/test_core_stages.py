@@ -187,3 +187,19 @@ def test_cancel_from_progress(strategy, stop_at):
     with pytest.raises(F.FitCancelled):
         F.fit(scan, 11, progress=progress, strategy=strategy)
     assert calls[0] == "features" and calls[-1] == stop_at
+
+
+@pytest.mark.parametrize("name,ks", [("branching", [3, 5, 11, 12]), ("greens_rod", [2, 3, 4])])
+def test_link_count_sweep_reuses_cluster_sums_and_matches_fresh_fits(name, ks):
+    """Segmenting one scan at several link counts (links auto, Preview Links) reuses the cached
+    distance sums of clusters it has seen, and gives bit-identical links and medoids to a
+    Segmenter that starts from nothing for each count."""
+    scan = samples.make(name)
+    seg = F.Segmenter(scan)
+    swept = [seg.segment(k) for k in ks]
+    assert seg.sum_cache.hits > 0
+    for k, (lab, med, _) in zip(ks, swept):
+        fresh = F.Segmenter(scan)
+        fresh.sum_cache = None
+        lab1, med1, _ = fresh.segment(k)
+        assert np.array_equal(lab, lab1) and np.array_equal(med, med1), k
