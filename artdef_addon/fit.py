@@ -133,8 +133,10 @@ class Segmenter:
         self.overcut = 1.5
         self.scan = scan
         self.progress = progress
-        # distance sums of clusters, reused when the same scan is segmented again (link sweeps)
+        # distance sums of clusters, reused when the same scan is segmented again (link sweeps);
+        # filled from the second segmentation on, so a single fit holds no extra memory
         self.sum_cache = _merge.SumCache()
+        self._segmentations = 0
         self.notes = []
         T = scan.n_faces
         bad = np.zeros(T, dtype=bool)
@@ -258,9 +260,12 @@ class Segmenter:
         cb = None if self.progress is None else (lambda f: self.progress(stage, f))
         try:
             return _merge.merge_clusters(feats, w, init, k, progress=cb, unit_size=self.unit_size,
-                                         cache=self.sum_cache, tag=_merge.member_key(np.asarray(fields)))
+                                         cache=self._cache(), tag=_merge.member_key(np.asarray(fields)))
         except _merge._Cancel:
             raise FitCancelled(f"cancelled during {stage}") from None
+
+    def _cache(self):
+        return self.sum_cache if self._segmentations > 1 else None
 
     def _check_k(self, k):
         if k < 1:
@@ -278,6 +283,7 @@ class Segmenter:
         column's three fields, then the union of their seams merged over all fields (A-9).
         """
         self._check_k(k)
+        self._segmentations += 1
         groups = self.groups if fields is None else [list(fields)]
         all_fields = [p for g in groups for p in g if self.weights[p] > 0]
         if not all_fields:
@@ -318,7 +324,7 @@ class Segmenter:
         feats = [self.features[p] for p in all_fields]
         tag = _merge.member_key(np.asarray(all_fields))
         medoids = _merge.link_medoids(feats, self.weights[all_fields], labels_u, k, unit_size=self.unit_size,
-                                      cache=self.sum_cache, tag=tag)
+                                      cache=self._cache(), tag=tag)
         labels = labels_u[self.unit_of]
         if self.refine:
             R = np.stack([self.features[p].R[medoids[:, i]] for i, p in enumerate(all_fields)])
@@ -328,7 +334,7 @@ class Segmenter:
                                          fixed=self.unit_tri[np.unique(medoids)],
                                          iterations=200 if self.reduced else 10)
             medoids = _merge.link_medoids(feats, self.weights[all_fields], labels[self.unit_tri], k,
-                                          unit_size=self.unit_size, cache=self.sum_cache, tag=tag)
+                                          unit_size=self.unit_size, cache=self._cache(), tag=tag)
         self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0
         return labels, medoids, all_fields
 

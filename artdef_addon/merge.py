@@ -44,7 +44,8 @@ class SumCache:
     Sweeping the link count (``--links auto``, Preview Links) re-merges mostly the same clusters:
     each cut of a tree differs from the next by a split or two. Every cached value is a pure
     function of its key (the fields, and the member arrays in order), so a cached fit is
-    bit-identical to a fresh one. When the values exceed ``max_bytes`` the cache starts over.
+    bit-identical to a fresh one. When the values exceed ``max_bytes`` the cache starts over. A
+    Segmenter fills it from its second segmentation on (a single fit keeps no extra memory).
     """
 
     def __init__(self, max_bytes: int = 256 * 2 ** 20):
