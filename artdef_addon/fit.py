@@ -377,18 +377,22 @@ def _select(fields: np.ndarray, idx) -> np.ndarray:
     return fields[idx]
 
 
-def _lsq_motions(x0, fields, faces, labels, L):
-    """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, METHOD §6)."""
+def _lsq_motions(x0, fields, faces, labels, L, corner_weights: bool = False):
+    """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, METHOD §6).
+
+    Each link vertex counts once, or with ``corner_weights`` once per face corner it is.
+    """
     P = fields.shape[0]
     R = np.zeros((P, L, 3, 3))
     t = np.zeros((P, L, 3))
     for l in range(L):
-        vid = np.unique(faces[labels == l])
+        vid, count = np.unique(faces[labels == l], return_counts=True)
+        w = count / count.sum() if corner_weights else np.full(len(vid), 1.0 / len(vid))
         a = x0[vid]
         b = a[None] + fields[:, vid]
-        am = a.mean(axis=0)
-        bm = b.mean(axis=1)
-        H = np.einsum("ni,pnj->pij", a - am, b - bm[:, None])
+        am = w @ a
+        bm = np.einsum("n,pnj->pj", w, b)
+        H = np.einsum("n,ni,pnj->pij", w, a - am, b - bm[:, None])
         U, _, Vt = np.linalg.svd(H)
         d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
         D = np.zeros((P, 3, 3))
@@ -514,7 +518,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     if skin == "refined":
         # weights and link motions refined together; the pose parameters then follow the
         # refined motions (bone offsets absorb what the joints do not explain)
-        weights, Rf, tf = alternate(x0, fields, faces, labels, Rf, tf, weights)
+        weights, Rf, tf = alternate(x0, fields, faces, labels, Rf, tf)
         params = _model.params_from_motions(parents, heads, frames, grounded, Rf, tf)
         Rf, tf = _model.forward_kinematics(parents, heads, frames, params)
     residual = np.zeros((P, N, 3))
@@ -546,8 +550,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
                     residual=residual, link_residuals=link_res, rms_articulation=rms_art,
                     rms_total=rms_tot, articulation_error_percent=kg, motion=motion, timings=timings,
                     probe_load=scan.probe_load)
-    if _merge.DOMINANT_RELABEL and _merge.SWAP_LINKS and scan.kind != "greens" and L > 2 \
-            and N * P > _swaps.SWAP_BUDGET:
+    if swaps is None:
         res.notes.append(f"link swaps skipped: {N:,} vertices × {P} fields is above their budget of "
                          f"{_swaps.SWAP_BUDGET:,} (each trial re-runs the skin decomposition)")
     if swaps:

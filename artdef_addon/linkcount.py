@@ -56,8 +56,7 @@ def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
         fields = fields_all[used]
         X = scan.vertices[None] + fields
         den = np.linalg.norm(X - X.mean(axis=0))
-        w0 = skinning.blend_weights(scan.vertices, scan.faces, labels, k)
-        w = skinning.refined_weights(scan.vertices, fields, scan.faces, labels, R, t, w0, ground=ground, rings=2)
+        w = skinning.refined_weights(scan.vertices, fields, scan.faces, labels, R, t, ground=ground, rings=2)
         if ground is not None:  # the fixed world is one more "link" with the identity motion
             R = np.concatenate([R, np.tile(np.eye(3), (len(used), 1, 1, 1))], axis=1)
             t = np.concatenate([t, np.zeros((len(used), 1, 3))], axis=1)

@@ -324,17 +324,17 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     that would own no face — or none of the faces ``units`` that carry the link motions (the
     clustered triangles, or the patch representatives of the reduced method) — keeps its faces.
     ``labels`` (T,) over all faces, ``R`` (P, k, 3, 3), ``t`` (P, k, 3). Returns the new (T,) labels
-    and the number of swaps kept.
+    and the number of swaps kept (None when the scan is above the swaps' budget).
     """
-    from .skinning import alternate, blend_weights
+    from .skinning import alternate
+    from .swaps import SWAP_BUDGET, TRIAL_ROUNDS, swap_links
     k = R.shape[1]
     # a rough skin is enough for the argmax: fewer rounds than the final refined skin
-    from .swaps import SWAP_BUDGET, swap_links
     if SWAP_LINKS and x0.shape[0] * fields.shape[0] <= SWAP_BUDGET:
         w, _, _, labels, swaps = swap_links(x0, fields, faces, labels, R, t, units=units)
     else:
-        swaps = 0
-        w, _, _ = alternate(x0, fields, faces, labels, R, t, blend_weights(x0, faces, labels, k), iterations=10)
+        swaps = None if SWAP_LINKS and k > 2 else 0   # None: skipped, the scan is above the budget
+        w, _, _ = alternate(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS)
     new = w[faces, :k].sum(axis=1).argmax(axis=1)
     for _ in range(k):
         owned = np.bincount(new if units is None else new[units], minlength=k) > 0

@@ -279,12 +279,12 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     wc = np.take_along_axis(out, cols, axis=1)
     total = float(np.sum(np.einsum("na,nab,nb->n", wc, Q, wc) - 2 * np.einsum("na,na->n", q, wc) + xx))
     if details:
-        return out, max(total, 0.0), dict(cols=cols, valid=valid, Q=Q, q=q, xx=xx, wc=wc, err=err)
+        return out, max(total, 0.0), {"cols": cols, "valid": valid, "Q": Q, "q": q, "xx": xx, "wc": wc, "err": err}
     return out, max(total, 0.0)
 
 
 def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
-                    R: np.ndarray, t: np.ndarray, seam_weights: np.ndarray, max_influences: int = 4,
+                    R: np.ndarray, t: np.ndarray, max_influences: int = 4,
                     rings: int = 3, ground=None, radius: float | None = None) -> np.ndarray:
     """Per-vertex convex skin weights fitted by least squares over all fields (issue 5; SSDR-style).
 
@@ -296,8 +296,7 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
     vertex) and one streamed pass of small matrix products over the fields (Le & Deng's SSDR
     trick), so the cost is O(N·P·L) in BLAS plus O(N·m²) — no per-vertex or per-field Python
     loop over vertices. All vertices are solved exactly by :func:`simplex_least_squares`.
-    ``seam_weights`` (N, L) is kept for the signature (rows with one candidate get weight 1).
-    Returns (N, L) rows summing to 1. With ``ground`` (N,) bool, the fixed world (identity
+    Rows with one candidate get weight 1. Returns (N, L) rows summing to 1. With ``ground`` (N,) bool, the fixed world (identity
     motion) is one more candidate for those vertices and their ``rings`` rings, returned as
     column L.
     """
@@ -347,7 +346,7 @@ def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray
 SKIN_RADIUS = 0.1
 
 
-def alternate(vertices, fields, faces, labels, R, t, seam_weights, iterations: int = 30,
+def alternate(vertices, fields, faces, labels, R, t, iterations: int = 30,
               tol: float = 1e-4, radius: float | None = SKIN_RADIUS, **kw):
     """Skinning decomposition from the fitted links: alternate refined weights and link motions.
 

@@ -12,7 +12,7 @@ measures what the rig cannot explain. As Dem Bones re-initialises its weakest bo
    candidate link (an upper bound on the re-solved error);
 2. re-seeds the cheapest link at a clustered triangle whose three vertices the skin fits worst
    (the worst triangle of each of the worst-fitted links; the 2 cheapest links × 3 places are
-   tried in turn), with the least-squares motion (Kabsch/Arun, METHOD §6) of that triangle's
+   tried in turn), with the least-squares motion (Kabsch/Arun, METHOD §6; ``fit._lsq_motions``) of that triangle's
    one-ring; the removed link's faces go to their best other candidate link;
 3. re-runs the decomposition and keeps the swap only if E falls by at least ``MIN_GAIN``.
 
@@ -32,41 +32,6 @@ EXACT = 1e-4
 SWAP_BUDGET = 500_000
 #: rounds of the decomposition per trial (the final refined skin runs to convergence)
 TRIAL_ROUNDS = 10
-
-
-class _Moments:
-    """Additive moments of a weighted point set over P fields."""
-    __slots__ = ("a", "ab", "b", "qa", "qb", "w")
-
-    def __init__(self, w, a, b, ab, qa, qb):
-        self.w, self.a, self.b, self.ab, self.qa, self.qb = w, a, b, ab, qa, qb
-
-
-def _moments(x0, fields, faces, fidx) -> _Moments:
-    vid, cnt = np.unique(faces[fidx].reshape(-1), return_counts=True)
-    w = cnt.astype(np.float64)
-    a = x0[vid]
-    b = a[None] + fields[:, vid]
-    return _Moments(w.sum(), w @ a, np.einsum("n,pnj->pj", w, b), np.einsum("n,ni,pnj->pij", w, a, b),
-                    float(w @ np.einsum("ni,ni->n", a, a)), np.einsum("n,pn->p", w, np.einsum("pni,pni->pn", b, b)))
-
-
-def _kabsch(m: _Moments):
-    """Least-squares motions (P,3,3), (P,3) and the residual of moments ``m``."""
-    am = m.a / m.w
-    bm = m.b / m.w
-    H = m.ab - m.w * am[None, :, None] * bm[:, None, :]
-    U, s, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(H))
-    d[d == 0] = 1.0
-    D = np.ones((len(d), 3))
-    D[:, 2] = d
-    R = np.einsum("pji,pj,pkj->pik", Vt, D, U)            # V D Uᵀ
-    t = bm - np.einsum("pij,j->pi", R, am)
-    ca = m.qa - m.w * am @ am
-    cb = m.qb - m.w * np.einsum("pi,pi->p", bm, bm)
-    E = ca + cb - 2.0 * (s[:, 0] + s[:, 1] + d * s[:, 2])
-    return R, t, float(np.maximum(E, 0.0).sum())
 
 
 def _quad(w, Q, q, xx):
@@ -114,6 +79,7 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
     where seeds are taken. Returns ``(weights (N, L), labels, swaps)``: the decomposition's
     weights and the labels the swaps left (each face's link before the caller re-labels by skin).
     """
+    from .fit import _lsq_motions
     from .skinning import SKIN_RADIUS, _alternate, _refine
     labels = np.array(labels, copy=True)
     L = R.shape[1]
@@ -121,11 +87,7 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
     units = np.arange(len(labels)) if units is None else np.asarray(units)
     max_swaps = L if max_swaps is None else max_swaps
 
-    def decompose(labels, R, t):
-        w, R, t, e = _alternate(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS)
-        return w, R, t, e
-
-    w, R, t, e = decompose(labels, R, t)
+    w, R, t, e = _alternate(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS)
     mean = fields.mean(axis=0)
     spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
     if e <= EXACT ** 2 * spread:      # the skin already explains the fields: nothing to swap
@@ -167,8 +129,9 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
             if np.any(np.bincount(new[units], minlength=L) == 0):
                 continue
             R1, t1 = R.copy(), t.copy()
-            R1[:, l], t1[:, l], _ = _kabsch(_moments(x0, fields, faces, ring))
-            w1, R1, t1, e1 = decompose(new, R1, t1)
+            Rr, tr = _lsq_motions(x0, fields, faces[ring], np.zeros(len(ring), dtype=np.int64), 1, corner_weights=True)
+            R1[:, l], t1[:, l] = Rr[:, 0], tr[:, 0]
+            w1, R1, t1, e1 = _alternate(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS)
             if e1 < (1.0 - MIN_GAIN) * e:
                 labels, w, R, t, e = new, w1, R1, t1, e1
                 swaps += 1
