@@ -193,29 +193,45 @@ def save_blend(path: str) -> str:
     return path
 
 
-def _driven_without_action(armature) -> bool:
+def _load_driven(armature) -> bool:
+    """A Green's rig: pose-bone channels driven by the load empties."""
     ad = armature.animation_data
-    return ad is not None and ad.action is None and len(ad.drivers) > 0
+    return ad is not None and any(fc.data_path.startswith("pose.bones[") for fc in ad.drivers)
+
+
+def _driven_bone_channels(armature):
+    """(data path, index) of every driven pose-bone channel: on a Green's rig,
+    the load helper bones' rotations and offsets."""
+    return [(fc.data_path, fc.array_index) for fc in armature.animation_data.drivers
+            if fc.data_path.startswith("pose.bones[")]
 
 
 def _bake_driven_pose(bpy, armature):
-    """Key the driven pose bones (a Green's rig: bones driven by the load
-    empties, which the load sweep animates) at every frame of the scene into a
-    new action on the armature, so Blender's glTF exporter samples the joints
-    (it exports an armature's animation only from its action; a driven shape
-    key is baked inside that armature action too).  The drivers stay: they
-    give the same values the keys hold.  Returns what :func:`_unbake` needs."""
+    """Key the driven pose-bone channels (a Green's rig: the load helper bones,
+    driven by the load empties, which the load sweep animates) at every frame
+    of the scene into a new action on the armature, so Blender's glTF exporter
+    samples the joints (it exports an armature's animation only from its
+    action; a driven shape key is baked inside that armature action too).  The
+    helpers are not exported (not deforming), but the exporter samples every
+    joint's evaluated pose, which follows its helper through the link bone's
+    constraint.  The drivers stay: they give the same values the keys hold.
+    An animator's action on the rig (keys on the link bones, on top of the
+    loads) is copied into the bake, so the export carries both.
+    Returns what :func:`_unbake` needs."""
     scene = bpy.context.scene
     ad = armature.animation_data
     saved = (ad.action, scene.frame_current)
-    action = bpy.data.actions.new(f"{armature.name}_glTF_bake")
+    channels = _driven_bone_channels(armature)
+    if ad.action is not None:
+        action = ad.action.copy()
+        action.name = f"{armature.name}_glTF_bake"
+    else:
+        action = bpy.data.actions.new(f"{armature.name}_glTF_bake")
     ad.action = action
-    bones = [pb for pb in armature.pose.bones if pb.bone.use_deform]
     for frame in range(scene.frame_start, scene.frame_end + 1):
         scene.frame_set(frame)
-        for pb in bones:
-            pb.keyframe_insert("rotation_euler", frame=frame, group=pb.name)
-            pb.keyframe_insert("location", frame=frame, group=pb.name)
+        for path, index in channels:
+            armature.keyframe_insert(path, index=index, frame=frame)
     return armature, action, saved
 
 
@@ -230,17 +246,18 @@ def export_glb(path: str, mesh, armature) -> str:
     """Skinned mesh (one joint per deforming bone, inverse bind matrices),
     shape keys as morph targets, and the scene's animation, as .glb.
 
-    A rig driven by load empties (Green's scans) has no action of its own:
-    its driven pose is baked into a temporary action for the export only
-    (removed again afterwards; the live drivers are never touched), so the
-    glTF animation moves the joints and the morph weights through the load
-    sweep."""
+    A rig driven by load empties (Green's scans) has its driven pose baked
+    into a temporary action for the export only (a copy of the animator's
+    action if the link bones were keyed; removed again afterwards, the live
+    drivers and the animator's action are never touched), so the glTF
+    animation moves the joints and the morph weights through the load sweep
+    over the scene's frame range."""
     bpy = _bpy()
     path = _abs(path)
     baked = None
     if armature is not None:
         _parent_keep_transform(mesh, armature)
-        if _driven_without_action(armature):
+        if _load_driven(armature):
             baked = _bake_driven_pose(bpy, armature)
     try:
         _export_gltf(bpy, path, mesh, armature)

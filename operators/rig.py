@@ -14,13 +14,18 @@ re-fit remove exactly this:
 * shape keys ``artdef_field_XXX`` holding the residual (and ``Basis`` if the
   mesh had none);
 * Green's scans: load empties ``artdef_load_K`` (children of the armature)
-  whose ``location`` is the load vector, with drivers on the bones and the
-  shape keys, and a load-sweep action per empty: load k along axis d (field
-  c = 3k+d) rises from 0 to the probe load p̂ and back, rest at frame
-  2c·frames_per_field, +p̂ at (2c+1)·frames_per_field; tracked scans: actions
-  replaying the input fields, field p at frame (p+1)·frames_per_field (frame
-  0 = rest).  Either way the scene's frame range is set to cover the
-  animation (restored by Clear Rig if still unchanged);
+  whose ``location`` is the load vector, and a load-sweep action per empty:
+  load k along axis d (field c = 3k+d) rises from 0 to the probe load p̂ and
+  back, rest at frame 2c·frames_per_field, +p̂ at (2c+1)·frames_per_field.
+  The loads drive the shape keys and, per link, a hidden non-deforming helper
+  bone ``artdef_link_XX_load`` (bone collection ``ArtDef Load Helpers``, same
+  rest frame and parent as the link bone); the link bone's Copy Transforms
+  constraint ``ArtDef Load`` puts the helper's local transform before its
+  own, so animator keys on the link bones add to the load-driven motion;
+* tracked scans: actions replaying the input fields on the link bones, field
+  p at frame (p+1)·frames_per_field (frame 0 = rest).  Either way the scene's
+  frame range is set to cover the animation (restored by Clear Rig if still
+  unchanged);
 * the face colour attribute ``artdef_links`` (active), the per-vertex
   articulation residual ``artdef_residual`` (FLOAT, POINT) and its colours
   ``artdef_residual_color`` (FLOAT_COLOR, POINT, blue = 0 → red = largest).
@@ -36,6 +41,9 @@ from mathutils import Matrix, Vector
 from . import io
 
 GROUP_FMT = "artdef_link_{:02d}"
+HELPER_FMT = GROUP_FMT + "_load"   # Green's scans: the load-driven helper bone of a link
+HELPER_COLLECTION = "ArtDef Load Helpers"
+LOAD_CONSTRAINT = "ArtDef Load"
 KEY_PREFIX = "artdef_field_"
 LOAD_FMT = "artdef_load_{}"
 MODIFIER_NAME = "ArtDef Armature"
@@ -414,7 +422,48 @@ def _fill_vertex_group(obj, name, weights):
     return vg
 
 
-def _make_armature(context, obj, result):
+def _add_link_bones(arm_data, result):
+    """One deform edit bone per link at the fitted joints, in the fitted tree."""
+    edit = []
+    for l in range(result.n_links):
+        eb = arm_data.edit_bones.new(GROUP_FMT.format(l))
+        head = Vector(result.heads[l])
+        tail = Vector(result.tails[l])
+        frame = np.asarray(result.frames[l])
+        if (tail - head).length < 1e-6:  # Blender deletes zero-length bones
+            tail = head + Vector(frame[:, 1]) * 1e-3
+        eb.head = head
+        eb.tail = tail
+        eb.align_roll(Vector(frame[:, 2]))
+        eb.use_connect = False
+        eb.use_deform = True
+        edit.append(eb)
+    for l, p in enumerate(result.parents):
+        if p >= 0:
+            edit[l].parent = edit[int(p)]
+    return edit
+
+
+def _add_helper_bones(arm_data, links):
+    """Hidden non-deforming copies (same head, tail, roll and parent) of the link
+    edit bones ``links``, in the hidden bone collection ``ArtDef Load Helpers``.
+    Not children of their link bones: those follow them (a dependency cycle)."""
+    coll = arm_data.collections.new(HELPER_COLLECTION)
+    coll.is_visible = False
+    for l, eb in enumerate(links):
+        hb = arm_data.edit_bones.new(HELPER_FMT.format(l))
+        hb.head = eb.head
+        hb.tail = eb.tail
+        hb.roll = eb.roll
+        hb.parent = eb.parent
+        hb.use_connect = False
+        hb.use_deform = False
+        coll.assign(hb)
+
+
+def _make_armature(context, obj, result, helpers=False):
+    """The armature object of ``result`` (one deform bone per link; with
+    ``helpers`` also the load helper bones).  Returns it and the link bone names."""
     name = f"{obj.name}_artdef_rig"
     arm_data = bpy.data.armatures.new(name)
     arm = bpy.data.objects.new(name, arm_data)
@@ -441,7 +490,6 @@ def _make_armature(context, obj, result):
     hidden = arm.hide_get(view_layer=view_layer)
     arm.hide_set(False)
     view_layer.objects.active = arm
-    bone_names = []
     try:
         with context.temp_override(active_object=arm, object=arm, edit_object=None,
                                    selected_objects=[arm], selected_editable_objects=[arm]):
@@ -449,24 +497,10 @@ def _make_armature(context, obj, result):
             if arm.mode != 'EDIT':
                 raise RuntimeError("could not enter edit mode on the new armature "
                                    "(is its collection hidden or excluded?)")
-            edit = []
-            for l in range(result.n_links):
-                eb = arm_data.edit_bones.new(GROUP_FMT.format(l))
-                head = Vector(result.heads[l])
-                tail = Vector(result.tails[l])
-                frame = np.asarray(result.frames[l])
-                if (tail - head).length < 1e-6:  # Blender deletes zero-length bones
-                    tail = head + Vector(frame[:, 1]) * 1e-3
-                eb.head = head
-                eb.tail = tail
-                eb.align_roll(Vector(frame[:, 2]))
-                eb.use_connect = False
-                eb.use_deform = True
-                edit.append(eb)
-                bone_names.append(eb.name)
-            for l, p in enumerate(result.parents):
-                if p >= 0:
-                    edit[l].parent = edit[int(p)]
+            edit = _add_link_bones(arm_data, result)
+            bone_names = [eb.name for eb in edit]
+            if helpers:
+                _add_helper_bones(arm_data, edit)
             bpy.ops.object.mode_set(mode='OBJECT')
     finally:
         if arm.mode != 'OBJECT':
@@ -476,13 +510,15 @@ def _make_armature(context, obj, result):
         for o in view_layer.objects:
             o.select_set(o in selected)
         arm.hide_set(hidden)
-    if len(arm_data.bones) != result.n_links:
+    if len(arm_data.bones) != result.n_links * (2 if helpers else 1):
         raise RuntimeError("Blender dropped a bone of the rig (zero length?)")
     for l in range(result.n_links):
         pb = arm.pose.bones[bone_names[l]]
         pb.rotation_mode = 'XYZ'
         free = result.parents[l] < 0 and not bool(result.grounded[l])
         pb.lock_location = (not free,) * 3
+        if helpers:
+            arm.pose.bones[HELPER_FMT.format(l)].rotation_mode = 'XYZ'
     return arm, bone_names
 
 
@@ -537,7 +573,8 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
         st.groups.add().name = vg.name
 
     # 2. armature, parenting, modifier
-    arm, bone_names = _make_armature(context, obj, result)
+    greens = kind == "greens" and result.kappa is not None
+    arm, bone_names = _make_armature(context, obj, result, helpers=greens)
     st.rig = arm
     st.old_parent = obj.parent
     st.old_parent_type = obj.parent_type
@@ -579,7 +616,7 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
     write_link_colours(mesh, result.face_labels, tri_polygons)
 
     # 5. load controls (and their sweep) or replay
-    if kind == "greens" and result.kappa is not None:
+    if greens:
         empties = _build_load_controls(obj, arm, result, bone_names, key_names, load_names)
         end = _build_load_sweep(empties, float(result.probe_load), frames_per_field)
     else:
@@ -634,7 +671,23 @@ def _build_load_sweep(empties, probe_load, frames_per_field=10):
     return end
 
 
+def _add_load_constraint(arm, pb, helper):
+    """Copy Transforms ``ArtDef Load`` on link bone ``pb``: its local transform
+    becomes helper's local transform (the load-driven one) followed by its own
+    (the animator's keys), as if the helper were its parent."""
+    con = pb.constraints.new('COPY_TRANSFORMS')
+    con.name = LOAD_CONSTRAINT
+    con.target = arm
+    con.subtarget = helper
+    con.target_space = 'LOCAL'
+    con.owner_space = 'LOCAL'
+    con.mix_mode = 'BEFORE_FULL'
+
+
 def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
+    """Load empties driving the helper bones (linearly through κ) and the shape
+    keys (through the strain-hardening map); the link bones follow their helpers.
+    Returns the empties."""
     kappa = np.asarray(result.kappa, dtype=np.float64)
     m = len(result.load_vertices)
     if load_names is None:
@@ -645,7 +698,8 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
     extent = float(np.linalg.norm(co.max(0) - co.min(0))) or 1.0
     empties = _make_load_empties(obj, arm, result, load_names, 0.02 * extent)
     for l, bname in enumerate(bone_names):
-        pb = arm.pose.bones[bname]
+        pb = arm.pose.bones[HELPER_FMT.format(l)]
+        _add_load_constraint(arm, arm.pose.bones[bname], pb.name)
         for j in range(6):
             coeffs = kappa[l, j]
             if not np.any(coeffs):

@@ -188,7 +188,8 @@ def check_rig(pkg, obj, links, n_fields):
     assert result is not None and result.n_links == links
     names = [pkg.rig.GROUP_FMT.format(l) for l in range(links)]
     assert sorted(g.name for g in obj.vertex_groups if g.name.startswith("artdef_link_")) == names
-    assert [b.name for b in arm.data.bones] == names
+    assert [b.name for b in arm.data.bones if b.use_deform] == names
+    check_load_helpers(pkg, arm, names, greens=result.kappa is not None)
     keys = obj.data.shape_keys.key_blocks
     assert len(keys) == n_fields + 1 and keys[0].name == "Basis"
     assert all(k.name.startswith("artdef_field_") for k in keys[1:])
@@ -214,6 +215,29 @@ def check_rig(pkg, obj, links, n_fields):
     assert mod.name == "ArtDef Armature" and mod.type == 'ARMATURE' and mod.object == arm
     assert obj.data.color_attributes.active_color.name == "artdef_links"
     return arm, result
+
+
+def check_load_helpers(pkg, arm, names, greens):
+    """Green's rigs: one hidden non-deforming helper bone per link bone (same rest
+    frame and parent) that the link bone's Copy Transforms constraint puts before
+    its own transform.  Tracked rigs: no helpers, no constraints."""
+    helpers = [pkg.rig.HELPER_FMT.format(l) for l in range(len(names))]
+    assert sorted(b.name for b in arm.data.bones if not b.use_deform) == (helpers if greens else [])
+    for name, helper in zip(names, helpers):
+        cons = arm.pose.bones[name].constraints
+        if not greens:
+            assert len(cons) == 0, name
+            continue
+        bone, hbone = arm.data.bones[name], arm.data.bones[helper]
+        assert [c.name for c in hbone.collections] == [pkg.rig.HELPER_COLLECTION]
+        assert not hbone.collections[0].is_visible
+        assert hbone.parent == bone.parent
+        np.testing.assert_allclose(np.array(hbone.matrix_local), np.array(bone.matrix_local), atol=1e-6)
+        assert arm.pose.bones[helper].rotation_mode == 'XYZ'
+        assert [c.type for c in cons] == ['COPY_TRANSFORMS']
+        con = cons[0]
+        assert (con.target, con.subtarget) == (arm, helper)
+        assert (con.target_space, con.owner_space, con.mix_mode) == ('LOCAL', 'LOCAL', 'BEFORE_FULL')
 
 
 @pytest.mark.parametrize("name,links", [("rod", 3), ("branching", 11)])
@@ -317,6 +341,107 @@ def test_pseudo_mode_builds_one_load_points_rig(clean_scene, pkg, sample_files):
     assert np.abs(x - want).max() / np.abs(want - rest).max() <= REL_TOL
     with pytest.raises(RuntimeError, match="Load Index"):
         bpy.ops.artdef.fit(links=3, mode='PSEUDO', load_index=len(ref.load_vertices))
+
+
+def evaluated_pose(arm):
+    """The armature's evaluated pose bones (drivers and constraints applied)."""
+    dg = bpy.context.evaluated_depsgraph_get()
+    dg.update()
+    return arm.evaluated_get(dg).pose.bones
+
+
+def fit_greens_rod(pkg, sample_files):
+    """The Green's rod fitted with 3 links: (mesh object, armature, result, rest positions)."""
+    obj = import_scan(sample_files["greens_rod"])
+    rest = rest_positions(obj)
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    ref = pkg.scan.load_scan(sample_files["greens_rod"])
+    arm, result = check_rig(pkg, obj, 3, ref.n_fields)
+    return obj, arm, result, rest
+
+
+def test_greens_loads_drive_helper_bones_that_link_bones_follow(clean_scene, pkg, sample_files):
+    """The drivers sit on the helper bones only; with no keys of their own the
+    link bones take the helpers' pose, and the mesh is exactly what link bones
+    driven directly (the former rig) give."""
+    obj, arm, result, rest = fit_greens_rod(pkg, sample_files)
+    names = [pkg.rig.GROUP_FMT.format(l) for l in range(3)]
+    helpers = [pkg.rig.HELPER_FMT.format(l) for l in range(3)]
+    driven = {fc.data_path.split('"')[1] for fc in arm.animation_data.drivers
+              if fc.data_path.startswith("pose.bones[")}
+    assert driven and driven <= set(helpers), driven
+    bpy.context.scene.frame_set(0)
+    set_loads(obj, LOADS[:len(result.load_vertices)])
+    x = evaluated_positions(obj)
+    size = np.abs(rest).max()
+    assert np.abs(x - rest).max() > 1e-3 * size  # the loads move the mesh
+    pose = evaluated_pose(arm)
+    for name, helper in zip(names, helpers):
+        np.testing.assert_allclose(np.array(pose[name].matrix), np.array(pose[helper].matrix),
+                                   atol=1e-5 * size)
+    # the former rig: the helpers' driven values on the link bones, no constraint
+    driven_values = [(tuple(pose[h].rotation_euler), tuple(pose[h].location)) for h in helpers]
+    for name, (rotation, location) in zip(names, driven_values):
+        pb = arm.pose.bones[name]
+        pb.constraints[pkg.rig.LOAD_CONSTRAINT].mute = True
+        pb.rotation_euler, pb.location = rotation, location
+    np.testing.assert_allclose(evaluated_positions(obj), x, atol=1e-5 * size)
+
+
+def test_greens_link_bones_take_animator_keys_on_top_of_loads(clean_scene, pkg, sample_files):
+    """A rotation keyed on a link bone adds to the load-driven motion (a driver on
+    the link bone itself would override the key)."""
+    from mathutils import Euler
+
+    obj, arm, result, rest = fit_greens_rod(pkg, sample_files)
+    scene = bpy.context.scene
+    children = {int(p) for p in result.parents if p >= 0}
+    k = next(l for l in range(3) if result.parents[l] >= 0 and l not in children)  # a leaf link
+    name, helper = pkg.rig.GROUP_FMT.format(k), pkg.rig.HELPER_FMT.format(k)
+    # the sweep's peak of the load case (field c) that turns link k the most
+    c = int(np.argmax(np.abs(np.asarray(result.kappa)[k, :3]).max(axis=0)))
+    peak = pkg.rig.sweep_frame(c, FPF)
+    scene.frame_set(peak)
+    x_loaded = evaluated_positions(obj)
+    loaded = np.array(evaluated_pose(arm)[name].matrix)
+    key = (0.3, -0.2, 0.25)
+    pb = arm.pose.bones[name]
+    pb.rotation_euler = key
+    assert pb.keyframe_insert("rotation_euler", frame=peak)
+    scene.frame_set(0)
+    scene.frame_set(peak)
+    np.testing.assert_allclose(tuple(pb.rotation_euler), key, atol=1e-6)
+    pose = evaluated_pose(arm)
+    size = np.abs(rest).max()
+    assert not np.allclose(np.array(pose[helper].matrix_basis), np.eye(4), atol=1e-6)  # loaded
+    want = pose[helper].matrix @ Euler(key, 'XYZ').to_matrix().to_4x4()
+    np.testing.assert_allclose(np.array(pose[name].matrix), np.array(want), atol=1e-5 * size)
+    # the mesh follows: vertices of link k alone turn with it, the others stay
+    keyed = np.array(pose[name].matrix)
+    x = evaluated_positions(obj)
+    w = np.asarray(result.weights)
+    own, other = w[:, k] > 1.0 - 1e-6, w[:, k] == 0.0
+    assert own.any() and other.any()
+    moved = np.c_[x_loaded[own], np.ones(own.sum())] @ (keyed @ np.linalg.inv(loaded)).T
+    np.testing.assert_allclose(x[own], moved[:, :3], atol=1e-5 * size)
+    np.testing.assert_allclose(x[other], x_loaded[other], atol=1e-5 * size)
+    assert np.abs(x[own] - x_loaded[own]).max() > 1e-2 * size
+
+
+def test_greens_clear_rig_removes_helpers_and_refit_rebuilds(clean_scene, pkg, sample_files):
+    obj, arm, result, rest = fit_greens_rod(pkg, sample_files)
+    assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert [o.name for o in bpy.data.objects] == [obj.name]
+    assert len(bpy.data.armatures) == 0 and len(bpy.data.actions) == 0
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}  # a re-fit replaces its own rig
+    assert [a.name for a in bpy.data.armatures] == [f"{obj.name}_artdef_rig"]
+    arm, result = check_rig(pkg, obj, 3, pkg.scan.load_scan(sample_files["greens_rod"]).n_fields)
+    assert len(arm.data.bones) == 6
+    set_loads(obj, LOADS[:len(result.load_vertices)])
+    want = pkg.model.evaluate_loads(result, rest, LOADS[:len(result.load_vertices)])
+    x = evaluated_positions(obj)
+    assert np.abs(x - want).max() / np.abs(want - rest).max() <= REL_TOL
 
 
 # --------------------------------------------------------------------------

@@ -253,6 +253,55 @@ def test_greens_blend_keeps_live_drivers(greens_glb):
     assert (int(start), int(end)) == (0, 2 * 3 * m * 10)
 
 
+_KEYED_EXPORT = """
+import sys, bpy
+from artdef_addon import headless
+bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
+scene = bpy.context.scene
+arm = [o for o in bpy.data.objects if o.type == 'ARMATURE'][0]
+mesh = [o for o in bpy.data.objects if o.type == 'MESH'][0]
+leaf = [pb for pb in arm.pose.bones if pb.bone.use_deform and not pb.children][0]
+leaf.rotation_euler = (0.0, 0.0, 0.0)
+leaf.keyframe_insert("rotation_euler", frame=scene.frame_start)
+leaf.rotation_euler = (0.0, 0.0, 0.7)
+leaf.keyframe_insert("rotation_euler", frame=scene.frame_start + 10)
+keyed = arm.animation_data.action
+headless.export_glb(sys.argv[2], mesh, arm)
+print(arm.animation_data.action == keyed, len(keyed.fcurves) if hasattr(keyed, "fcurves") else -1,
+      leaf.name, scene.frame_end, scene.render.fps)
+"""
+
+
+def test_greens_export_keeps_animator_keys_and_the_load_sweep(greens_glb, tmp_path):
+    """An animator who keys a link bone of a Green's rig (on top of the loads)
+    still exports the whole load sweep, with the keyed bone's extra turn; the
+    animator's action is left as it was."""
+    glb = tmp_path / "keyed.glb"
+    proc = _ok(_run(["-c", _KEYED_EXPORT, str(greens_glb["blend"]), str(glb)], cwd=tmp_path))
+    same, _, leaf, end, fps = proc.stdout.strip().splitlines()[-1].split()
+    assert same == "True"
+    _validate(glb)
+    ref, ref_bin = read_glb(greens_glb["glb"])
+    gltf, binary = read_glb(glb)
+    anims = gltf.get("animations", [])
+    assert len(anims) == 1
+    times = np.concatenate([accessor(gltf, binary, s["input"]).ravel() for s in anims[0]["samplers"]])
+    assert times.max() == pytest.approx(int(end) / int(fps), abs=1e-3)  # the whole sweep
+
+    def leaf_rotation(g, b):
+        node = [i for i, n in enumerate(g["nodes"]) if n.get("name") == leaf][0]
+        a = g["animations"][0]
+        ch = [c for c in a["channels"] if c["target"]["node"] == node and c["target"]["path"] == "rotation"][0]
+        return accessor(g, b, a["samplers"][ch["sampler"]]["output"])
+
+    q_ref, q = leaf_rotation(ref, ref_bin), leaf_rotation(gltf, binary)
+    assert q.shape == q_ref.shape
+    # frame 0: no key offset yet, same pose; frame 10 on: the keyed 0.7 rad turn on top
+    np.testing.assert_allclose(np.abs(np.sum(q[0] * q_ref[0])), 1.0, atol=1e-5)
+    angle = 2 * np.arccos(np.clip(np.abs(np.sum(q[10:] * q_ref[10:], axis=1)), 0, 1))
+    assert np.all(angle > 0.1), angle.min()
+
+
 def test_build_outputs_rejects_unknown_fit_options(rod_scan, tmp_path):
     glb = tmp_path / "x.glb"
     code = ("import sys\n"
