@@ -49,6 +49,14 @@ class Scan:
     # filled by validate_scan: indices of triangles with (near) zero area
     degenerate_faces: np.ndarray = dataclasses.field(
         default_factory=lambda: np.zeros(0, dtype=np.int64))
+    # set by validate_scan: ids of the arrays it checked (a scan validated once is not
+    # checked again while it holds the same, read-only, arrays)
+    _checked: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
+
+    def _array_ids(self) -> tuple:
+        return tuple(id(a) for a in (self.vertices, self.faces, self.greens, self.displacements,
+                                     self.load_vertices, self.support_vertices,
+                                     self.degenerate_faces)) + (self.probe_load,)
 
     @property
     def kind(self) -> str:
@@ -122,7 +130,28 @@ def validate_scan(scan: Scan) -> Scan:
     Degenerate triangles (zero area or repeated vertices) are not an error: they are
     recorded in ``degenerate_faces`` and the fit gives them their neighbours' link
     (METHOD §2, notes).
+
+    The copy holds read-only views of its arrays and remembers them, so validating it
+    again (the Blender operators validate on reading the mesh, the fit on entry) returns
+    it as is instead of re-reading every field; assigning a new array to it (or any
+    scan not made here) is checked in full.
     """
+    if scan._checked is not None and scan._checked == scan._array_ids():
+        return scan
+    out = _check_scan(scan)
+    for name in ("vertices", "faces", "greens", "displacements", "load_vertices",
+                 "support_vertices", "degenerate_faces"):
+        a = getattr(out, name)
+        if a is not None:
+            a = a.view()
+            a.flags.writeable = False
+            setattr(out, name, a)
+    out._checked = out._array_ids()
+    return out
+
+
+def _check_scan(scan: Scan) -> Scan:
+    """The checks of :func:`validate_scan`, always run in full."""
     v = _as_float("vertices", scan.vertices, 2)
     if v.shape[1] != 3:
         raise ScanError(f"vertices must have shape (N, 3), got {v.shape}")

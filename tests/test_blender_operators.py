@@ -1545,3 +1545,15 @@ def test_fast_mesh_access_matches_blender_triangulation(clean_scene, pkg, sample
         np.testing.assert_array_equal(fast_faces, faces, err_msg=mesh.name)
         np.testing.assert_array_equal(fast_polys, polys, err_msg=mesh.name)
         np.testing.assert_array_equal(pkg.io._positions(mesh, len(mesh.vertices)), co)
+
+
+def test_fit_validates_the_scan_once(clean_scene, pkg, sample_files, monkeypatch):
+    """The operator validates the scan it reads from the mesh; the core's fit
+    takes that validated scan as it is instead of checking every field again."""
+    obj = import_scan(sample_files["rod"])
+    calls = []
+    check = pkg.scan._check_scan
+    monkeypatch.setattr(pkg.scan, "_check_scan", lambda sc: calls.append(1) or check(sc))
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    assert obj.artdef.has_fit
+    assert len(calls) == 1

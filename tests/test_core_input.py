@@ -127,3 +127,24 @@ def test_cli_sample_and_fit(tmp_path):
     assert "joint (12.0000" in p.stdout and "time:" in p.stdout
     r = F.load_result(res)
     assert r.n_links == 3
+
+
+def test_validated_scan_is_checked_once(rod, monkeypatch):
+    """A validated scan passes through validate_scan (and the fit) without a second full
+    check; its arrays are read-only, and a new array put into it is checked again."""
+    calls = []
+    check = S._check_scan
+    monkeypatch.setattr(S, "_check_scan", lambda sc: calls.append(1) or check(sc))
+    sc = S.validate_scan(_scan(rod))
+    assert len(calls) == 1
+    assert S.validate_scan(sc) is sc and len(calls) == 1
+    F.fit(sc, 3)
+    assert len(calls) == 1
+    with pytest.raises(ValueError, match="read-only"):
+        sc.displacements[0, 0, 0] = np.nan
+    bad = rod.displacements.copy()
+    bad[0, 0, 0] = np.nan
+    sc.displacements = bad
+    with pytest.raises(S.ScanError, match="NaN"):
+        S.validate_scan(sc)
+    assert len(calls) == 2
