@@ -405,6 +405,11 @@ def _lsq_motions(x0, fields, faces, labels, L, corner_weights: bool = False):
     return R, t
 
 
+#: a joint whose robust motions agree to this fraction of the bounding-box diagonal is exact
+#: (round-off): the refined skin keeps it instead of refitting it to the decomposition's motions
+EXACT_JOINT = 1e-8
+
+
 def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion, field_idx, skin="seam"):
     """Stages 4–5 for the fields ``field_idx`` of ``scan``; returns a FitResult."""
     x0 = scan.vertices
@@ -441,6 +446,30 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
                 medoids = _merge.link_medoids([seg.features[p] for p in used_fields], seg.weights[used_fields],
                                               labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
             R, t = link_motions(labels, medoids)
+    refined = Rs = ts = None
+    if skin == "refined":
+        # the skin decomposition before the joints (issue 5). Where a short link is blended with
+        # its neighbours on every vertex (a finger's first segment) its robust motion is itself a
+        # blend, and a joint fitted to it lands off the true centre; the decomposition's link
+        # motions are the ones whose blend explains those vertices, so joints are fitted to them
+        # unless the robust motions already share an exact joint (joint_of). The pose parameters
+        # and the reported link motions are the decomposition's (bone offsets absorb what the
+        # joints do not explain), so its weights stay valid.
+        t1 = time.perf_counter()
+        refined, Rs, ts = alternate(x0, fields, faces, labels, R, t)
+        timings["skin"] = time.perf_counter() - t1
+
+    def joint_of(a, b, c_ref):
+        """Joint of links a and b (b = None: the fixed world): from the robust motions when they
+        share an exact joint (to round-off), else from the decomposition's motions."""
+        Ra, ta, Rb, tb = R[:, a], t[:, a], *((I3, Z3) if b is None else (R[:, b], t[:, b]))
+        c, rms, rank = _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
+        if Rs is None or rms <= EXACT_JOINT * diag:
+            return c, rms, rank
+        Ra, ta = Rs[:, a], ts[:, a]
+        if b is not None:
+            Rb, tb = Rs[:, b], ts[:, b]
+        return _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
     # adjacency of links (shared vertices) and seam reference points
     N = x0.shape[0]
     inc = np.zeros((N, L))
@@ -468,13 +497,13 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
         for b in range(a + 1, L):
             adj = shared[a, b] > 0
             c_ref = seam_sum[a, b] / shared[a, b] if adj else 0.5 * (centroid[a] + centroid[b])
-            c, rms, _ = _joints.fit_joint(R[:, a], t[:, a], R[:, b], t[:, b], c_ref)
+            c, rms, _ = joint_of(a, b, c_ref)
             edges.append((a, b)); costs.append(rms); pref.append(adj); centres.append(c)
     if support is not None:
         sup_in = inc[support].sum(axis=0) > 0
         for a in range(L):
             sv = support[inc[support, a] > 0] if sup_in[a] else support
-            c, rms, _ = _joints.fit_joint(R[:, a], t[:, a], I3, Z3, x0[sv].mean(axis=0))
+            c, rms, _ = joint_of(a, None, x0[sv].mean(axis=0))
             edges.append((a, G)); costs.append(rms); pref.append(bool(sup_in[a])); centres.append(c)
     edges = np.array(edges, dtype=np.int64).reshape(-1, 2)
     costs = np.array(costs)
@@ -502,25 +531,25 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     if support is None:
         # the root's joint with the fixed world frame, reported when it fits (paper's Joint 1)
         r = root
-        c, rms, rank = _joints.fit_joint(R[:, r], t[:, r], I3, Z3, centroid[r])
+        c, rms, rank = joint_of(r, None, centroid[r])
         tree_err = jerr[np.isfinite(jerr)]
         tol = max(2.0 * (tree_err.max() if tree_err.size else 0.0), 1e-6 * diag)
         if rms <= tol and rank > 0:
             joint[r] = c
             jerr[r] = rms
             grounded[r] = True
-    timings["joints"] = time.perf_counter() - t0
+    timings["joints"] = time.perf_counter() - t0 - timings.get("skin", 0.0)
     t0 = time.perf_counter()
     heads, tails, frames = _bones(x0, faces, labels, parents, joint, centroid, diag)
-    params = _model.params_from_motions(parents, heads, frames, grounded, R, t)
-    weights = blend_weights(x0, faces, labels, L)
+    if refined is None:
+        params = _model.params_from_motions(parents, heads, frames, grounded, R, t)
+        weights = blend_weights(x0, faces, labels, L)
+    else:
+        params = _model.params_from_motions(parents, heads, frames, grounded, Rs, ts)
+        weights = refined
     Rf, tf = _model.forward_kinematics(parents, heads, frames, params)
-    if skin == "refined":
-        # weights and link motions refined together; the pose parameters then follow the
-        # refined motions (bone offsets absorb what the joints do not explain)
-        weights, Rf, tf = alternate(x0, fields, faces, labels, Rf, tf)
-        params = _model.params_from_motions(parents, heads, frames, grounded, Rf, tf)
-        Rf, tf = _model.forward_kinematics(parents, heads, frames, params)
+    # the link motions reported: the ones the rig reproduces
+    Ro, to = (R, t) if Rs is None else (Rs, ts)
     residual = np.zeros((P, N, 3))
     art_err = np.zeros(P)
     tot_err = np.zeros(P)
@@ -535,7 +564,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
         # rigid-motion residual of each link's own motion over its vertices (fit quality)
         for l in range(L):
             vid = link_vids[l]
-            d = x0[vid] @ R[i, l].T + t[i, l] - x1[vid]
+            d = x0[vid] @ Ro[i, l].T + to[i, l] - x1[vid]
             link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
     rms_art = float(np.sqrt(art_err.sum() / (P * N)))
     rms_tot = float(np.sqrt(tot_err.sum() / (P * N)))
@@ -546,7 +575,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     timings["model"] = time.perf_counter() - t0
     res = FitResult(face_labels=labels, parents=parents, joints=joint, joint_errors=jerr,
                     heads=heads, tails=tails, frames=frames, grounded=grounded, weights=weights,
-                    rotations=R, translations=t, angles=params[..., :3], locations=params[..., 3:],
+                    rotations=Ro, translations=to, angles=params[..., :3], locations=params[..., 3:],
                     residual=residual, link_residuals=link_res, rms_articulation=rms_art,
                     rms_total=rms_tot, articulation_error_percent=kg, motion=motion, timings=timings,
                     probe_load=scan.probe_load)
