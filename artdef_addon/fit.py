@@ -406,8 +406,9 @@ def _lsq_motions(x0, fields, faces, labels, L, corner_weights: bool = False):
 
 
 #: a joint whose robust motions agree to this fraction of the bounding-box diagonal is exact
-#: (round-off): the refined skin keeps it instead of refitting it to the decomposition's motions
-EXACT_JOINT = 1e-8
+#: (round-off, also of single-precision input: Blender meshes hold float32, about 1e-7 of the
+#: extent): the refined skin keeps it instead of refitting it to the decomposition's motions
+EXACT_JOINT = 1e-6
 
 
 def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion, field_idx, skin="seam"):
