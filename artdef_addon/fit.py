@@ -459,18 +459,6 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
         t1 = time.perf_counter()
         refined, Rs, ts = alternate(x0, fields, faces, labels, R, t)
         timings["skin"] = time.perf_counter() - t1
-
-    def joint_of(a, b, c_ref):
-        """Joint of links a and b (b = None: the fixed world): from the robust motions when they
-        share an exact joint (to round-off), else from the decomposition's motions."""
-        Ra, ta, Rb, tb = R[:, a], t[:, a], *((I3, Z3) if b is None else (R[:, b], t[:, b]))
-        c, rms, rank = _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
-        if Rs is None or rms <= EXACT_JOINT * diag:
-            return c, rms, rank
-        Ra, ta = Rs[:, a], ts[:, a]
-        if b is not None:
-            Rb, tb = Rs[:, b], ts[:, b]
-        return _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
     # adjacency of links (shared vertices) and seam reference points
     N = x0.shape[0]
     inc = np.zeros((N, L))
@@ -493,6 +481,18 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     nodes = L + (1 if support is not None else 0)
     I3 = np.tile(np.eye(3), (P, 1, 1))
     Z3 = np.zeros((P, 3))
+    def joint_of(a, b, c_ref):
+        """Joint of links a and b (b = None: the fixed world): from the robust motions when they
+        share an exact joint (to round-off), else from the decomposition's motions."""
+        Ra, ta, Rb, tb = R[:, a], t[:, a], *((I3, Z3) if b is None else (R[:, b], t[:, b]))
+        c, rms, rank = _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
+        if Rs is None or rms <= EXACT_JOINT * diag:
+            return c, rms, rank
+        Ra, ta = Rs[:, a], ts[:, a]
+        if b is not None:
+            Rb, tb = Rs[:, b], ts[:, b]
+        return _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
+
     edges, costs, pref, centres = [], [], [], []
     for a in range(L):
         for b in range(a + 1, L):
