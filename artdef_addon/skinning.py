@@ -359,20 +359,23 @@ def alternate(vertices, fields, faces, labels, R, t, iterations: int = 30,
     return _alternate(vertices, fields, faces, labels, R, t, iterations, tol, radius, **kw)[:3]
 
 
-def _alternate(vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS, **kw):
+def _alternate(vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS,
+               details=False, **kw):
     """:func:`alternate` returning ``(weights, R, t, error)``: error is the total squared
-    articulation error Σ_p Σ_v ‖x̂ − x‖² of the returned skin."""
+    articulation error Σ_p Σ_v ‖x̂ − x‖² of the returned skin. With ``details`` a fifth value
+    holds :func:`_refine`'s details of the returned skin (what :mod:`swaps` prices links from)."""
     kw["radius"] = radius
+    kw["details"] = details
     L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
     kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
-    w, e = _refine(vertices, fields, faces, labels, R, t, **kw)
+    w, e, *info = _refine(vertices, fields, faces, labels, R, t, **kw)
     for _ in range(iterations):
         R1, t1 = update_motions(vertices, fields, w, R, t)
-        w1, e1 = _refine(vertices, fields, faces, labels, R1, t1, **kw)
+        w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, **kw)
         if e1 > e:      # round-off only: keep the better pair
             break
         done = e - e1 <= tol * e
-        w, R, t, e = w1, R1, t1, e1
+        w, R, t, e, info = w1, R1, t1, e1, info1
         if done:
             break
-    return w, R, t, e
+    return (w, R, t, e, *info)
