@@ -193,17 +193,13 @@ def save_blend(path: str) -> str:
     return path
 
 
-def _load_driven(armature) -> bool:
-    """A Green's rig: pose-bone channels driven by the load empties."""
-    ad = armature.animation_data
-    return ad is not None and any(fc.data_path.startswith("pose.bones[") for fc in ad.drivers)
-
-
 def _driven_bone_channels(armature):
     """(data path, index) of every driven pose-bone channel: on a Green's rig,
-    the load helper bones' rotations and offsets."""
-    return [(fc.data_path, fc.array_index) for fc in armature.animation_data.drivers
-            if fc.data_path.startswith("pose.bones[")]
+    the load helper bones' rotations and offsets (none on other rigs)."""
+    ad = armature.animation_data
+    if ad is None:
+        return []
+    return [(fc.data_path, fc.array_index) for fc in ad.drivers if fc.data_path.startswith("pose.bones[")]
 
 
 def _bake_driven_pose(bpy, armature):
@@ -257,7 +253,7 @@ def export_glb(path: str, mesh, armature) -> str:
     baked = None
     if armature is not None:
         _parent_keep_transform(mesh, armature)
-        if _load_driven(armature):
+        if _driven_bone_channels(armature):  # a Green's rig: driven by its load empties
             baked = _bake_driven_pose(bpy, armature)
     try:
         _export_gltf(bpy, path, mesh, armature)

@@ -49,14 +49,13 @@ class Scan:
     # filled by validate_scan: indices of triangles with (near) zero area
     degenerate_faces: np.ndarray = dataclasses.field(
         default_factory=lambda: np.zeros(0, dtype=np.int64))
-    # set by validate_scan: ids of the arrays it checked (a scan validated once is not
-    # checked again while it holds the same, read-only, arrays)
+    # set by validate_scan: the (read-only) arrays and probe load it checked; a scan validated
+    # once is not checked again while it holds exactly these (held here, so never recycled)
     _checked: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
 
-    def _array_ids(self) -> tuple:
-        return tuple(id(a) for a in (self.vertices, self.faces, self.greens, self.displacements,
-                                     self.load_vertices, self.support_vertices,
-                                     self.degenerate_faces)) + (self.probe_load,)
+    def _inputs(self) -> tuple:
+        return (self.vertices, self.faces, self.greens, self.displacements, self.load_vertices,
+                self.support_vertices, self.degenerate_faces, self.probe_load)
 
     @property
     def kind(self) -> str:
@@ -136,7 +135,7 @@ def validate_scan(scan: Scan) -> Scan:
     it as is instead of re-reading every field; assigning a new array to it (or any
     scan not made here) is checked in full.
     """
-    if scan._checked is not None and scan._checked == scan._array_ids():
+    if scan._checked is not None and all(a is b for a, b in zip(scan._checked, scan._inputs())):
         return scan
     out = _check_scan(scan)
     for name in ("vertices", "faces", "greens", "displacements", "load_vertices",
@@ -146,7 +145,7 @@ def validate_scan(scan: Scan) -> Scan:
             a = a.view()
             a.flags.writeable = False
             setattr(out, name, a)
-    out._checked = out._array_ids()
+    out._checked = out._inputs()
     return out
 
 
