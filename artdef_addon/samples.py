@@ -319,12 +319,13 @@ def make(name: str, **kw) -> Scan:
 
 
 def random_poses(vertices, weights, joints, parents, n_fields: int = 20, max_deg: float = 45.0,
-                 seed: int = 0, root_motion: bool = True):
+                 seed: int = 0, root_motion: bool = True, motions: bool = False):
     """Displacements (P, N, 3) of random poses of a rigged mesh by linear blend skinning.
 
     Every bone rotates about its rest head by a random axis and an angle up to ``max_deg``;
     roots also translate when ``root_motion``. Used to make fresh tracked scans with a known
-    skeleton from the shared rigged models.
+    skeleton from the shared rigged models. With ``motions`` the bones' world motions
+    ``R`` (P, J, 3, 3), ``t`` (P, J, 3) are returned too (x ↦ R x + t per bone and pose).
     """
     rng = np.random.default_rng(seed)
     J = len(parents)
@@ -337,9 +338,10 @@ def random_poses(vertices, weights, joints, parents, n_fields: int = 20, max_deg
                 seen.add(j)
     diag = float(np.linalg.norm(np.ptp(vertices, axis=0)))
     out = np.zeros((n_fields,) + vertices.shape)
+    Rs = np.zeros((n_fields, J, 3, 3))
+    ts = np.zeros((n_fields, J, 3))
     for p in range(n_fields):
-        R = np.zeros((J, 3, 3))
-        t = np.zeros((J, 3))
+        R, t = Rs[p], ts[p]
         for j in order:
             Rj = Rotation.from_rotvec(_random_axis(rng) * np.radians(rng.uniform(0, max_deg))).as_matrix()
             c = joints[j]
@@ -351,4 +353,4 @@ def random_poses(vertices, weights, joints, parents, n_fields: int = 20, max_deg
                 R[j] = R[q] @ Rj
                 t[j] = R[q] @ (c - Rj @ c) + t[q]
         out[p] = _skin(vertices, weights, R, t) - vertices
-    return out
+    return (out, Rs, ts) if motions else out

@@ -47,61 +47,118 @@ def blend_weights(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n
     return W
 
 
-def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Exact minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries.
+def _kkt_solve(Q, q, P):
+    """Minimiser of wᵀQw − 2qᵀw subject to Σw = 1 and w = 0 off the rows' sets ``P`` (B, m)."""
+    B, m = q.shape
+    K = np.zeros((B, m + 1, m + 1))
+    both = P[:, :, None] & P[:, None, :]
+    K[:, :m, :m] = np.where(both, 2 * Q, 0.0)
+    K[:, np.arange(m), np.arange(m)] += ~P
+    K[:, :m, m] = P
+    K[:, m, :m] = P
+    rhs = np.zeros((B, m + 1))
+    rhs[:, :m] = np.where(P, 2 * q, 0.0)
+    rhs[:, m] = 1.0
+    try:
+        z = np.linalg.solve(K, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        z = np.einsum("nij,nj->ni", np.linalg.pinv(K), rhs)
+    return np.where(P, z[:, :m], 0.0)
 
-    Batched over rows (Q (N,m,m), q (N,m), m small): every support subset S of the m candidates
-    is tried at once for the rows where all of S is valid — the equality-constrained optimum on
-    S from its KKT system — and the best feasible one is kept. The convex optimum is one of
-    them, so this is exact (2^m − 1 tiny solves per row at most; m ≤ 4 gives 15). Rows with a
-    single valid candidate get weight 1 on it without a solve.
+
+def _active_set(Q, q, valid, max_rounds):
+    """Convex optimum on the simplex by a batched Lawson–Hanson active-set method (no support
+    limit). Returns (w, done): ``done`` marks rows whose KKT conditions hold at the end."""
+    B, m = q.shape
+    rows = np.arange(B)
+    diagQ = np.einsum("nii->ni", Q)
+    scale = np.abs(diagQ).max(axis=1) + np.abs(q).max(axis=1) + 1e-300
+    single = np.where(valid, diagQ - 2 * q, np.inf)
+    j0 = single.argmin(axis=1)
+    w = np.zeros((B, m))
+    w[rows, j0] = 1.0
+    P = np.zeros((B, m), dtype=bool)
+    P[rows, j0] = True
+    done = np.zeros(B, dtype=bool)
+    for _ in range(max_rounds):
+        g = 2 * (np.einsum("nab,nb->na", Q, w) - q)
+        lam = np.einsum("na,na->n", g, w)
+        viol = np.where(valid & ~P, g - lam[:, None], np.inf)
+        j = viol.argmin(axis=1)
+        act = ~done & (viol[rows, j] < -1e-10 * scale)
+        done |= ~act & ~done
+        a = np.flatnonzero(act)
+        if a.size == 0:
+            break
+        P[a, j[a]] = True
+        for _ in range(m):                # drop the sets' negative weights (the inner loop)
+            z = _kkt_solve(Q[a], q[a], P[a])
+            wa, Pa = w[a], P[a]
+            neg = Pa & (z <= 0)
+            bad = neg.any(axis=1)
+            ok = ~bad
+            w[a[ok]] = z[ok]
+            if not bad.any():
+                break
+            b = a[bad]
+            wb, zb, nb = wa[bad], z[bad], neg[bad]
+            ratio = np.where(nb, wb / np.maximum(wb - zb, 1e-300), np.inf)
+            alpha = np.clip(ratio.min(axis=1), 0.0, 1.0)
+            wb = wb + alpha[:, None] * (zb - wb)
+            drop = Pa[bad] & (wb <= 1e-14)
+            wb[drop] = 0.0
+            P[b] = Pa[bad] & ~drop
+            w[b] = wb
+            a = b
+    return w, done
+
+
+def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
+                          max_support: int | None = None) -> np.ndarray:
+    """Minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries,
+    with at most ``max_support`` non-zero weights (default: no limit).
+
+    Batched over rows (Q (N,m,m), q (N,m), m small). The convex optimum comes from a batched
+    Lawson–Hanson active-set method (:func:`_active_set`): exact, and where it uses at most
+    ``max_support`` links it is also the optimum under the limit. Where it uses more, as the
+    skinning-decomposition methods do, the largest ``max_support`` of its weights are re-solved on
+    their own — or the ``max_support`` candidates that fit best alone, whichever is better (so
+    never worse than choosing the links by their single fit). Rows with a single valid candidate
+    get weight 1 on it without a solve.
     """
     N, m = q.shape
-    best = np.full(N, np.inf)
     out = np.zeros((N, m))
     nvalid = valid.sum(axis=1)
     one = nvalid == 1
     out[one] = valid[one]
-    best[one] = 0.0  # the only feasible point
     multi = np.flatnonzero(nvalid > 1)
     if multi.size == 0:
         return out
+    top = m if max_support is None else max(1, min(m, int(max_support)))
     Qm, qm, vm = Q[multi], q[multi], valid[multi]
-    bm = np.full(multi.size, np.inf)
-    om = np.zeros((multi.size, m))
-    for mask in range(1, 1 << m):
-        S = [i for i in range(m) if mask >> i & 1]
-        rows = np.flatnonzero(np.all(vm[:, S], axis=1))
-        if rows.size == 0:
-            continue
-        n = len(S)
-        QS = Qm[rows][:, S][:, :, S]
-        if n == 1:
-            w = np.ones((rows.size, 1))
-        else:
-            K = np.zeros((rows.size, n + 1, n + 1))
-            K[:, :n, :n] = 2 * QS
-            K[:, :n, n] = 1.0
-            K[:, n, :n] = 1.0
-            rhs = np.zeros((rows.size, n + 1))
-            rhs[:, :n] = 2 * qm[rows][:, S]
-            rhs[:, n] = 1.0
-            try:
-                sol = np.linalg.solve(K, rhs[..., None])[..., 0]
-            except np.linalg.LinAlgError:
-                sol = np.einsum("nij,nj->ni", np.linalg.pinv(K), rhs)
-            w = sol[:, :n]
-        feas = np.all(w >= -1e-12, axis=1) & np.all(np.isfinite(w), axis=1)
-        if not feas.any():
-            continue
-        rows, w, QS = rows[feas], np.maximum(w[feas], 0.0), QS[feas]
-        obj = np.einsum("na,nab,nb->n", w, QS, w) - 2 * np.einsum("na,na->n", qm[rows][:, S], w)
-        better = obj < bm[rows]
-        r = rows[better]
-        bm[r] = obj[better]
-        om[r] = 0.0
-        om[r[:, None], np.array(S)[None, :]] = w[better]
-    out[multi] = om
+    w, done = _active_set(Qm, qm, vm, max_rounds=3 * m)
+    over = np.flatnonzero(~done | (np.count_nonzero(w > 0, axis=1) > top))
+    if over.size:
+        Qo, qo = Qm[over], qm[over]
+        alone = np.where(vm[over], np.einsum("nii->ni", Qo) - 2 * qo, np.inf)
+        best = None
+        for score in (-w[over], alone):
+            keep = np.argsort(score, axis=1, kind="stable")[:, :top]
+            sub = np.zeros((over.size, m), dtype=bool)
+            np.put_along_axis(sub, keep, True, axis=1)
+            sub &= vm[over]
+            ws, _ = _active_set(Qo, qo, sub, max_rounds=3 * top)
+            ws = np.maximum(ws, 0.0)
+            ws /= ws.sum(axis=1, keepdims=True)
+            obj = np.einsum("na,nab,nb->n", ws, Qo, ws) - 2 * np.einsum("na,na->n", qo, ws)
+            if best is None:
+                best, best_obj = ws, obj
+            else:
+                better = obj < best_obj
+                best[better] = ws[better]
+        w[over] = best
+    w = np.maximum(w, 0.0)
+    out[multi] = w / w.sum(axis=1, keepdims=True)
     return out
 
 
@@ -190,34 +247,34 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
                     radius: float | None = None) -> np.ndarray:
     """Which links may weigh on each vertex: (N, L) bool from the vertex–link ``incidence``.
 
-    With ``radius`` (a fraction of the bounding-box diagonal): every link with a vertex within
-    that geodesic distance along the mesh edges (Dijkstra from each link's vertices; links on
-    another connected piece are never candidates). Otherwise the links within ``rings`` edge
-    rings. A vertex's own links are always candidates.
+    The links within ``rings`` edge rings, and with ``radius`` (a fraction of the bounding-box
+    diagonal) also every link with a vertex within that geodesic distance along the mesh edges
+    (Dijkstra from each link's vertices; links on another connected piece are never candidates),
+    so a coarse mesh whose edges are longer than the radius still reaches its neighbours. A
+    vertex's own links are always candidates.
     """
     N, L = incidence.shape
     f = faces
     a = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)
+    cand = incidence.astype(np.float64)
+    for _ in range(max(rings - 1, 0)):
+        cand = np.minimum(cand + A @ cand, 1.0)
+    cand = cand > 0
     if radius is not None:
         from scipy.sparse.csgraph import dijkstra
         length = np.linalg.norm(vertices[a[:, 0]] - vertices[a[:, 1]], axis=1)
         E = coo_matrix((length + 1e-300, (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
         E = E.maximum(E.T)
         limit = radius * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-        cand = incidence.copy()
         for l in range(L):
             src = np.flatnonzero(incidence[:, l])
             if src.size == 0 or limit <= 0:
                 continue
             d = dijkstra(E, directed=False, indices=src, min_only=True, limit=limit)
             cand[:, l] |= np.isfinite(d)
-        return cand
-    A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
-    A = ((A + A.T) > 0).astype(np.float64)
-    cand = incidence.astype(np.float64)
-    for _ in range(max(rings - 1, 0)):
-        cand = np.minimum(cand + A @ cand, 1.0)
-    return cand > 0
+    return cand
 
 
 def _candidates(vertices, faces, labels, L, rings, radius, ground):
@@ -230,8 +287,13 @@ def _candidates(vertices, faces, labels, L, rings, radius, ground):
     return candidate_links(vertices, faces, inc, rings=rings, radius=radius)
 
 
+#: a vertex's candidate links: the ones whose own motion explains it best, among which its (at most
+#: max_influences) skin links are chosen (see :func:`refined_weights`)
+POOL = 8
+
+
 def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, ground=None,
-            radius=None, cand=None, details=False):
+            radius=None, cand=None, details=False, pool=None):
     """:func:`refined_weights` plus the total squared articulation error of the result.
 
     ``cand`` is the candidate matrix when the caller already has it (it depends on the labels
@@ -257,21 +319,22 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     Gd = G[np.arange(L), np.arange(L)]                                   # (L, 4, 4)
     err = np.einsum("nj,ljk,nk->ln", xh, Gd, xh, optimize=True) - 2 * q_all.T + xx[None]
     err = np.where(cand.T, np.maximum(err, 0.0), np.inf)
-    if L > max_influences:
-        keep = np.argsort(err, axis=0)[:max_influences]                  # (m, N)
+    pool = POOL if pool is None else pool
+    if L > pool:
+        keep = np.argsort(err, axis=0)[:pool]                            # (m, N)
         mask = np.zeros((L, N), dtype=bool)
         mask[keep, np.arange(N)[None, :]] = True
         mask &= np.isfinite(err)
     else:
         mask = np.isfinite(err)
-    m = max_influences if L > max_influences else L
+    m = min(pool, L)
     order = np.argsort(~mask, axis=0, kind="stable")[:m]                # candidate link ids (m, N)
     valid = np.take_along_axis(mask, order, axis=0).T                   # (N, m)
     cols = order.T                                                       # (N, m)
     # Gram systems of the candidates (memory O(N m²), no pass over the fields)
     Q = _pair_quadratic(xh, G, cols)
     q = np.take_along_axis(q_all, cols, axis=1)
-    w = simplex_least_squares(Q, q, valid)
+    w = simplex_least_squares(Q, q, valid, max_support=max_influences)
     out = np.zeros((N, L))
     np.put_along_axis(out, cols, w, axis=1)
     out[out < 1e-6] = 0.0
@@ -285,22 +348,28 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
 
 def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
                     R: np.ndarray, t: np.ndarray, max_influences: int = 4,
-                    rings: int = 3, ground=None, radius: float | None = None) -> np.ndarray:
+                    rings: int = 3, ground=None, radius: float | None = None,
+                    pool: int | None = None) -> np.ndarray:
     """Per-vertex convex skin weights fitted by least squares over all fields (issue 5; SSDR-style).
 
     For each vertex v, with candidate links C(v) — the links of the triangles within ``rings``
-    rings of v, at most ``max_influences`` of them, those whose own motion explains v best —
+    rings of v (or the ``radius``, :func:`candidate_links`), at most ``pool`` (default ``POOL``) of
+    them, those whose own motion explains v best —
     solve   min_w Σ_p ‖Σ_{l∈C(v)} w_l (R_l^p x0(v) + t_l^p) − x^p(v)‖²   s.t. w ≥ 0, Σ w = 1,
+    with at most ``max_influences`` non-zero weights (:func:`simplex_least_squares`). The pool is
+    wider than the influences because a vertex blended over four bones is often explained better,
+    one link at a time, by a neighbouring bone it does not use: choosing its four links by their
+    single fit left 0.29 % Karni–Gotsman error on RobotExpressive's poses with the true links and
+    motions, the pool of 8 leaves 0.001 %.
     given the link motions (R, t) (P, L, 3, 3) / (P, L, 3). The normal equations are sums
     over fields that factor into per-link-pair 4×4 matrices (Σ_p A_aᵀA_b, independent of the
     vertex) and one streamed pass of small matrix products over the fields (Le & Deng's SSDR
     trick), so the cost is O(N·P·L) in BLAS plus O(N·m²) — no per-vertex or per-field Python
-    loop over vertices. All vertices are solved exactly by :func:`simplex_least_squares`.
-    Rows with one candidate get weight 1. Returns (N, L) rows summing to 1. With ``ground`` (N,) bool, the fixed world (identity
+    loop over vertices. Rows with one candidate get weight 1. Returns (N, L) rows summing to 1. With ``ground`` (N,) bool, the fixed world (identity
     motion) is one more candidate for those vertices and their ``rings`` rings, returned as
     column L.
     """
-    return _refine(vertices, fields, faces, labels, R, t, max_influences, rings, ground, radius)[0]
+    return _refine(vertices, fields, faces, labels, R, t, max_influences, rings, ground, radius, pool=pool)[0]
 
 
 def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray, R: np.ndarray,
@@ -342,8 +411,10 @@ def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray
     return _from_homogeneous(A, m0)
 
 
-#: geodesic reach of a link's skin, as a fraction of the bounding-box diagonal (refined skin)
-SKIN_RADIUS = 0.1
+#: geodesic reach of a link's skin, as a fraction of the bounding-box diagonal (refined skin). The
+#: rigged models' true weights reach that far: with their true links and motions a reach of 0.1
+#: leaves 0.39 % error on the Fox and 0.52 % on CesiumMan, 0.2 leaves < 0.001 % and 0.03 %
+SKIN_RADIUS = 0.2
 
 
 def alternate(vertices, fields, faces, labels, R, t, iterations: int = 30,

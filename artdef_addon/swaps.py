@@ -71,13 +71,14 @@ def _one_ring(faces, f, labels):
 
 def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
                R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None,
-               max_swaps: int | None = None, candidates: int = 2, seed_links: int = 3):
+               max_swaps: int | None = None, candidates: int = 2, seed_links: int = 3, error: bool = False):
     """Skinning decomposition with link swaps (see module docstring).
 
     ``labels`` (T,) link of every face; ``R`` (P, L, 3, 3), ``t`` (P, L, 3) the links' motions;
     ``units`` the faces that carry the links' robust motions (clustered triangles; default all),
     where seeds are taken. Returns ``(weights (N, L), labels, swaps)``: the decomposition's
     weights and the labels the swaps left (each face's link before the caller re-labels by skin).
+    With ``error`` the decomposition's squared error E is appended.
     """
     from .fit import _lsq_motions
     from .skinning import _alternate
@@ -91,7 +92,7 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
     mean = fields.mean(axis=0)
     spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
     if e <= EXACT ** 2 * spread:      # the skin already explains the fields: nothing to swap
-        return w, R, t, labels, 0
+        return (w, R, t, labels, 0) + ((e,) if error else ())
     swaps = 0
     tried = set()
     while swaps < max_swaps and L > 2 and P > 0:
@@ -139,5 +140,5 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
                 break
         if not kept:
             break
-    return w, R, t, labels, swaps
+    return (w, R, t, labels, swaps) + ((e,) if error else ())
 

@@ -139,13 +139,16 @@ def test_hardening_table(p_max, s, expected):
     assert model.harden(0.0, p_max) == 0.0
 
 
-def test_weights_rows_sum_to_one_and_blend_at_seams():
+@pytest.mark.parametrize("skin", ["seam", "refined"])
+def test_weights_rows_sum_to_one_and_blend_at_seams(skin):
     scan, truth = samples.rod()
-    r = F.fit(scan, 3)
+    r = F.fit(scan, 3, skin=skin)
     assert np.allclose(r.weights.sum(axis=1), 1.0)
     x = scan.vertices[:, 0]
     inner = (x > 3) & (x < 9)
-    assert np.all(r.weights[inner, 0] == 1.0)
+    # the seam skin (paper Eq. 2) is pure inside a link; the refined skin is a least-squares fit,
+    # and the rod's ground blend (x < 1), which its links cannot follow, leaves a trace inside
+    assert np.all(r.weights[inner, 0] == 1.0) if skin == "seam" else np.all(r.weights[inner, 0] > 0.95)
     seam = np.isclose(x, 12.0)
     assert np.all((r.weights[seam, 0] > 0) & (r.weights[seam, 1] > 0))
 
