@@ -66,9 +66,11 @@ def _kkt_solve(Q, q, P):
     return np.where(P, z[:, :m], 0.0)
 
 
-def _active_set(Q, q, valid, max_rounds):
+def _active_set(Q, q, valid, max_rounds, w0=None):
     """Convex optimum on the simplex by a batched Lawson–Hanson active-set method (no support
-    limit). Returns (w, done): ``done`` marks rows whose KKT conditions hold at the end."""
+    limit). Starts from each row's best single candidate, or from the feasible weights ``w0``
+    (B, m) where they have support on valid candidates (a warm start: the previous round's skin).
+    Returns (w, done): ``done`` marks rows whose KKT conditions hold at the end."""
     B, m = q.shape
     rows = np.arange(B)
     diagQ = np.einsum("nii->ni", Q)
@@ -79,19 +81,16 @@ def _active_set(Q, q, valid, max_rounds):
     w[rows, j0] = 1.0
     P = np.zeros((B, m), dtype=bool)
     P[rows, j0] = True
-    done = np.zeros(B, dtype=bool)
-    for _ in range(max_rounds):
-        g = 2 * (np.einsum("nab,nb->na", Q, w) - q)
-        lam = np.einsum("na,na->n", g, w)
-        viol = np.where(valid & ~P, g - lam[:, None], np.inf)
-        j = viol.argmin(axis=1)
-        act = ~done & (viol[rows, j] < -1e-10 * scale)
-        done |= ~act & ~done
-        a = np.flatnonzero(act)
-        if a.size == 0:
-            break
-        P[a, j[a]] = True
-        for _ in range(m):                # drop the sets' negative weights (the inner loop)
+    if w0 is not None:
+        w0 = np.where(valid, np.maximum(w0, 0.0), 0.0)
+        tot = w0.sum(axis=1)
+        warm = tot > 0
+        w[warm] = w0[warm] / tot[warm, None]
+        P[warm] = w[warm] > 0
+
+    def settle(a):
+        """Optimum on each row's set P, dropping the weights that turn negative (inner loop)."""
+        for _ in range(m):
             z = _kkt_solve(Q[a], q[a], P[a])
             wa, Pa = w[a], P[a]
             neg = Pa & (z <= 0)
@@ -110,11 +109,29 @@ def _active_set(Q, q, valid, max_rounds):
             P[b] = Pa[bad] & ~drop
             w[b] = wb
             a = b
+
+    if w0 is not None:
+        several = np.flatnonzero(P.sum(axis=1) > 1)
+        if several.size:
+            settle(several)
+    done = np.zeros(B, dtype=bool)
+    for _ in range(max_rounds):
+        g = 2 * (np.einsum("nab,nb->na", Q, w) - q)
+        lam = np.einsum("na,na->n", g, w)
+        viol = np.where(valid & ~P, g - lam[:, None], np.inf)
+        j = viol.argmin(axis=1)
+        act = ~done & (viol[rows, j] < -1e-10 * scale)
+        done |= ~act & ~done
+        a = np.flatnonzero(act)
+        if a.size == 0:
+            break
+        P[a, j[a]] = True
+        settle(a)
     return w, done
 
 
 def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
-                          max_support: int | None = None) -> np.ndarray:
+                          max_support: int | None = None, w0: np.ndarray | None = None) -> np.ndarray:
     """Minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries,
     with at most ``max_support`` non-zero weights (default: no limit).
 
@@ -124,7 +141,8 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     skinning-decomposition methods do, the largest ``max_support`` of its weights are re-solved on
     their own — or the ``max_support`` candidates that fit best alone, whichever is better (so
     never worse than choosing the links by their single fit). Rows with a single valid candidate
-    get weight 1 on it without a solve.
+    get weight 1 on it without a solve. ``w0`` (N, m): feasible weights to start the active set
+    from (the result does not depend on it where the optimum is unique).
     """
     N, m = q.shape
     out = np.zeros((N, m))
@@ -136,7 +154,7 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
         return out
     top = m if max_support is None else max(1, min(m, int(max_support)))
     Qm, qm, vm = Q[multi], q[multi], valid[multi]
-    w, done = _active_set(Qm, qm, vm, max_rounds=3 * m)
+    w, done = _active_set(Qm, qm, vm, max_rounds=3 * m, w0=None if w0 is None else w0[multi])
     over = np.flatnonzero(~done | (np.count_nonzero(w > 0, axis=1) > top))
     if over.size:
         Qo, qo = Qm[over], qm[over]
@@ -293,7 +311,7 @@ POOL = 8
 
 
 def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, ground=None,
-            radius=None, cand=None, details=False, pool=None):
+            radius=None, cand=None, details=False, pool=None, w_init=None):
     """:func:`refined_weights` plus the total squared articulation error of the result.
 
     ``cand`` is the candidate matrix when the caller already has it (it depends on the labels
@@ -334,7 +352,8 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     # Gram systems of the candidates (memory O(N m²), no pass over the fields)
     Q = _pair_quadratic(xh, G, cols)
     q = np.take_along_axis(q_all, cols, axis=1)
-    w = simplex_least_squares(Q, q, valid, max_support=max_influences)
+    w0 = None if w_init is None else np.take_along_axis(w_init, cols, axis=1) * valid
+    w = simplex_least_squares(Q, q, valid, max_support=max_influences, w0=w0)
     out = np.zeros((N, L))
     np.put_along_axis(out, cols, w, axis=1)
     out[out < 1e-6] = 0.0
@@ -442,7 +461,7 @@ def _alternate(vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, r
     w, e, *info = _refine(vertices, fields, faces, labels, R, t, **kw)
     for _ in range(iterations):
         R1, t1 = update_motions(vertices, fields, w, R, t)
-        w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, **kw)
+        w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, w_init=w, **kw)
         if e1 > e:      # round-off only: keep the better pair
             break
         done = e - e1 <= tol * e
