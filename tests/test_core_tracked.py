@@ -117,6 +117,15 @@ def test_auto_link_count_on_generated_samples(name, kw, expected):
     assert f"chose {expected}" in choice.reason
 
 
+def test_whole_fits_climb_to_the_true_link_count():
+    """Started below the truth (8 of 11 links on the branching object), the whole fits' error
+    keeps falling faster than k^-2 until every arm segment has its link, then stays at the floor."""
+    seg = F.Segmenter(samples.make("branching"))
+    k, errors = linkcount._whole_fits_upward(seg, 8, 16, 4)
+    assert k == 11
+    assert errors[10] > 1.0 > 0.01 > errors[11]
+
+
 def test_auto_link_count_rigid_is_one():
     scan = samples.make("rod")
     from scipy.spatial.transform import Rotation
