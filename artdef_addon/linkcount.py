@@ -116,8 +116,10 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slo
         whole_fits = scan.kind != "greens" and scan.support_vertices is None
     if whole_fits and k < max_links:
         k1, ef = _whole_fits_upward(seg, k, max_links, window, progress)
-        why += (f". Whole fits from {k} links: error {ef[k]:.3g}% with {k}, {ef[k1]:.3g}% with {k1}; "
-                f"beyond it the error falls slower than k^-{WHOLE_FIT_SLOPE:g} over {window} more links")
+        why += f". Whole fits from {k} links: error {ef[k]:.3g}%"
+        if k1 > k:
+            why += f", {ef[k1]:.3g}% with {k1}"
+        why += f"; beyond it the error falls slower than k^-{WHOLE_FIT_SLOPE:g} over {window} more links"
         k = k1
     return LinkChoice(k, e, tau, f"links auto: chose {k}. {why}")
 
