@@ -44,6 +44,7 @@ class LinkChoice:
     errors: np.ndarray       # e(k) for k = 1..len(errors), percent
     tau: float
     reason: str
+    tree_links: int = 0      # the re-cut tree's pick, before the whole fits
 
 
 def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
@@ -111,6 +112,7 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slo
                     f"({e[k - 1]:.2f}%)")
         else:
             why += f"; beyond it the error falls slower than k^-{slope:g}"
+    tree_links = k
     scan = seg.scan
     if whole_fits is None:
         whole_fits = scan.kind != "greens" and scan.support_vertices is None
@@ -121,7 +123,7 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slo
             why += f", {ef[k1]:.3g}% with {k1}"
         why += f"; beyond it the error falls slower than k^-{WHOLE_FIT_SLOPE:g} over {window} more links"
         k = k1
-    return LinkChoice(k, e, tau, f"links auto: chose {k}. {why}")
+    return LinkChoice(k, e, tau, f"links auto: chose {k}. {why}", tree_links)
 
 
 def _whole_fits_upward(seg, k: int, max_links: int, window: int, progress=None):

@@ -121,7 +121,7 @@ def _active_set(Q, q, valid, max_rounds, w0=None):
         viol = np.where(valid & ~P, g - lam[:, None], np.inf)
         j = viol.argmin(axis=1)
         act = ~done & (viol[rows, j] < -1e-10 * scale)
-        done |= ~act & ~done
+        done |= ~act
         a = np.flatnonzero(act)
         if a.size == 0:
             break

@@ -50,8 +50,8 @@ def main(argv=None):
             t0 = time.perf_counter()
             seg = F.Segmenter(scan)
             mx = max(30, int(1.5 * L))
-            tree = linkcount.choose_links(seg, max_links=mx, whole_fits=False).links
             c = linkcount.choose_links(seg, max_links=mx)
+            tree = c.tree_links
             dt = time.perf_counter() - t0
             print(f"| {name} | {kind} | {L} | {tree} | {c.links} | {100 * (c.links - L) / L:+.0f} % | {dt:.0f} |",
                   flush=True)
