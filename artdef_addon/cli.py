@@ -149,8 +149,12 @@ def _cmd_fit(a) -> int:
             choice = choose_links(seg, max_links=a.max_links)
             links = choice.links
             t_auto = time.perf_counter() - t0
-        result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
-                       strategy=a.strategy, skin=a.skin)
+        result = choice.reusable(a.mode, a.motion, a.skin) if auto else None
+        if result is not None:      # the chooser fitted this count already
+            result.p_max = a.p_max
+        else:
+            result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
+                           strategy=a.strategy, skin=a.skin)
     except S.ScanError as exc:
         raise _BadInput(str(exc)) from None
     timings = {"load": t_load, **result.timings}

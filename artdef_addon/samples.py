@@ -199,8 +199,12 @@ def _vertex_normals(v, f):
 
 
 def branching(n_fields: int = 12, noise: float = 0.0, bulges: bool = False, disconnected: bool = False,
-              seed: int = 1, max_deg: float = 40.0):
-    """Hub + five two-segment arms: 11 links in a branching tree (hub is link 0, the root)."""
+              seed: int = 1, max_deg: float = 40.0, blend: float = 1.0):
+    """Hub + five two-segment arms: 11 links in a branching tree (hub is link 0, the root).
+
+    ``blend``: width of the hub–arm blend and half-width of the elbow blend (arm units; an arm
+    is 8 long, its elbow at 4). The default 1 blends narrowly; 2.5 blends most of each inner
+    segment with its neighbours, like a character with very smooth skin weights."""
     v, f, part, dist, arm_dirs = _branching_mesh(disconnected)
     N = len(v)
     L = 11
@@ -221,8 +225,8 @@ def branching(n_fields: int = 12, noise: float = 0.0, bulges: bool = False, disc
     for arm, (a, s) in enumerate(arm_dirs):
         m = vpart == arm + 1
         # a separate piece moves rigidly with its own link: no blend with the hub
-        r1 = np.ones(m.sum()) if disconnected else _ramp(vdist[m], 0.0, 1.0)
-        r2 = _ramp(vdist[m], 3.0, 5.0)
+        r1 = np.ones(m.sum()) if disconnected else _ramp(vdist[m], 0.0, blend)
+        r2 = _ramp(vdist[m], 4.0 - blend, 4.0 + blend)
         w[m, 0] = 1 - r1
         w[m, 1 + 2 * arm] = r1 - r2
         w[m, 2 + 2 * arm] = r2

@@ -337,9 +337,14 @@ class _FitJob:
                     self.links_fraction = None
                 self.links, self.link_reason = int(choice.links), str(choice.reason)
             extra = {} if self.skin is None else {"skin": self.skin}
-            self.result = _fit.fit(self.scan, self.links, mode=self.mode, motion=self.motion,
-                                   p_max=self.p_max, progress=callback, segmenter=self.segmenter,
-                                   **extra)
+            reuse = getattr(choice, "reusable", None) if self.max_links is not None else None
+            self.result = reuse(self.mode, self.motion, self.skin) if reuse is not None else None
+            if self.result is not None:     # the chooser fitted this count already
+                self.result.p_max = self.p_max
+            else:
+                self.result = _fit.fit(self.scan, self.links, mode=self.mode, motion=self.motion,
+                                       p_max=self.p_max, progress=callback, segmenter=self.segmenter,
+                                       **extra)
             self._quality()
         except BaseException as err:  # reported on the main thread
             self.error = err

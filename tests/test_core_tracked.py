@@ -126,6 +126,57 @@ def test_whole_fits_climb_to_the_true_link_count():
     assert errors[10] > 1.0 > 0.01 > errors[11]
 
 
+def test_interpolating_links_known_ratios():
+    """ρ of a chain's middle link: 0 when its motion is a convex blend of its neighbours', 1/2 for
+    a translation half-way off their segment, 1 when both neighbours move alike; the ends have
+    one neighbour each (ρ = 1)."""
+    scan, truth = samples.rod(n_fields=3)
+    lab = truth["face_labels"]
+    x0, faces = scan.vertices, scan.faces
+    P = 3
+    R = np.tile(np.eye(3), (P, 3, 1, 1))
+    rng = np.random.default_rng(0)
+    t0, t2 = rng.normal(size=(P, 3)), rng.normal(size=(P, 3))
+    t = np.stack([t0, 0.3 * t0 + 0.7 * t2, t2], axis=1)
+    rho = linkcount.interpolating_links(x0, faces, lab, R, t)
+    assert rho[1] < 1e-12 and rho[0] == rho[2] == 1.0
+    t = np.zeros((P, 3, 3))
+    t[:, 2] = [2.0, 0, 0]
+    t[:, 1] = [1.0, 1.0, 0]
+    assert np.isclose(linkcount.interpolating_links(x0, faces, lab, R, t)[1], 0.5)
+    from scipy.spatial.transform import Rotation
+    R[:, 1] = Rotation.from_rotvec([0.0, 0.0, 0.4]).as_matrix()
+    t[:] = 0.0
+    assert np.isclose(linkcount.interpolating_links(x0, faces, lab, R, t)[1], 1.0)
+
+
+def test_blend_handles_are_not_bones():
+    """A link whose skin weights reach far beyond its own triangles (here: it keeps the rod's
+    middle third's weights but owns two triangles) is a blend handle; with its third it is a bone."""
+    from types import SimpleNamespace
+    scan, truth = samples.rod(n_fields=3)
+    lab = truth["face_labels"].copy()
+    P = 3
+    R = np.tile(np.eye(3), (P, 3, 1, 1))
+    t = np.zeros((P, 3, 3))
+    t[:, 2] = [2.0, 0, 0]
+    t[:, 1] = [1.0, 1.0, 0]                      # ρ = 1/2: not interpolating
+    fit = SimpleNamespace(face_labels=lab, rotations=R, translations=t, weights=truth["weights"])
+    assert not linkcount.spurious_links(scan.vertices, scan.faces, fit).any()
+    middle = np.flatnonzero(lab == 1)
+    lab[middle[2:]] = 0
+    assert linkcount.spurious_links(scan.vertices, scan.faces, fit).tolist() == [False, True, False]
+
+
+def test_links_auto_drops_interpolating_links_on_smooth_blends():
+    """With wide blends (most of each inner arm segment shared with the hub and the outer
+    segment), a 12th link is spent inside a blend and moves as a blend of its neighbours: the
+    drop takes it off and the 11-link fit has no link that is not a bone."""
+    scan, truth = samples.branching(blend=2.5)
+    k, steps = linkcount._drop_interpolating(F.Segmenter(scan), 12, {})
+    assert (k, steps) == (11, [(12, 1), (11, 0)])
+
+
 def test_auto_link_count_rigid_is_one():
     scan = samples.make("rod")
     from scipy.spatial.transform import Rotation
