@@ -1438,6 +1438,13 @@ def test_fit_auto_links(clean_scene, pkg, sample_files):
     # an explicit link count overrides the object's Auto Links setting
     assert bpy.ops.artdef.fit(links=2) == {'FINISHED'}
     assert pkg.ops.last_result(obj).n_links == 2 and not st.auto_links and st.fit_link_reason == ""
+    # a tracked scan without support: the chooser's whole fits end at the chosen count, whose fit
+    # the operator builds (not fitted twice)
+    obj = import_scan(sample_files["branching"])
+    assert bpy.ops.artdef.fit(auto_links=True, max_links=14) == {'FINISHED'}
+    result = pkg.ops.last_result(obj)
+    assert result.n_links == 11 and obj.artdef.fit_link_reason.startswith("links auto: chose 11")
+    assert len(obj.artdef.rig.data.bones) == 11
 
 
 # --------------------------------------------------------------------------

@@ -177,6 +177,31 @@ def test_links_auto_drops_interpolating_links_on_smooth_blends():
     assert (k, steps) == (11, [(12, 1), (11, 0)])
 
 
+def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
+    """The chooser's fit at the chosen count is the one ``fit`` would make (same segmenter), so the
+    command line uses it instead of fitting that count again; other fit options refit."""
+    scan = samples.make("branching")
+    seg = F.Segmenter(scan)
+    choice = linkcount.choose_links(seg, max_links=16)
+    mine = choice.reusable()
+    again = F.fit(scan, choice.links, segmenter=seg)
+    assert mine is not None and mine.n_links == choice.links == 11
+    assert np.array_equal(mine.face_labels, again.face_labels)
+    assert np.allclose(mine.weights, again.weights) and np.allclose(mine.joints, again.joints, equal_nan=True)
+    assert choice.reusable(skin="seam") is None and choice.reusable(mode="pseudo") is None
+    assert choice.reusable(motion="lsq") is None
+    from artdef_addon import cli
+    path = tmp_path / "branching.npz"
+    S.save_scan(path, scan)
+    calls = []
+    real_fit = F.fit
+    monkeypatch.setattr(F, "fit", lambda *a, **k: calls.append(a[1]) or real_fit(*a, **k))
+    assert cli.main(["fit", str(path), "--links", "auto", "--max-links", "16", "-o", str(tmp_path / "r.npz")]) == 0
+    assert "links auto: chose 11" in capsys.readouterr().out
+    assert F.load_result(tmp_path / "r.npz").n_links == 11
+    assert 11 in calls and len(calls) == len(set(calls))   # no count fitted twice: the CLI reused it
+
+
 def test_auto_link_count_rigid_is_one():
     scan = samples.make("rod")
     from scipy.spatial.transform import Rotation
