@@ -53,6 +53,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.sparse import coo_matrix
 
 from . import skinning
 from .model import skin
@@ -155,7 +156,7 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slo
             if k1 > k:
                 why += f", {ef[k1]:.3g}% with {k1}"
             why += f"; beyond it the error falls slower than k^-{WHOLE_FIT_SLOPE:g} over {window} more links"
-        k, steps = _drop_interpolating(seg, k1, fits, progress)
+        k, steps = _drop_non_bones(seg, k1, fits, progress)
         if k < k1:
             why += (". Links that are not bones (moving as a blend of their neighbours, or lending their motion "
                     "to blends far beyond their own triangles): " + ", ".join(f"{n} of {j}" for j, n in steps)
@@ -178,11 +179,12 @@ def spurious_links(x0: np.ndarray, faces: np.ndarray, result) -> np.ndarray:
     L = result.rotations.shape[1]
     rho = interpolating_links(x0, faces, labels, result.rotations, result.translations)
     ok = labels >= 0
-    owned = np.zeros((x0.shape[0], L), dtype=bool)
-    for c in range(3):
-        owned[faces[ok, c], labels[ok]] = True
+    rows = faces[ok].reshape(-1)
+    owned = coo_matrix((np.ones(rows.size), (rows, np.repeat(labels[ok], 3))), shape=(x0.shape[0], L)).tocsc()
+    owned.sum_duplicates()
+    n_owned = np.diff(owned.indptr)                      # vertices of each link's own triangles
     mass = result.weights[:, :L].sum(axis=0)
-    return (rho < INTERPOLATING) | (mass > HANDLE * np.maximum(owned.sum(axis=0), 1))
+    return (rho < INTERPOLATING) | (mass > HANDLE * np.maximum(n_owned, 1))
 
 
 def interpolating_links(x0: np.ndarray, faces: np.ndarray, labels: np.ndarray, R: np.ndarray,
@@ -197,20 +199,22 @@ def interpolating_links(x0: np.ndarray, faces: np.ndarray, labels: np.ndarray, R
     """
     L = R.shape[1]
     ok = labels >= 0
-    inc = np.zeros((x0.shape[0], L), dtype=bool)
-    for c in range(3):
-        inc[faces[ok, c], labels[ok]] = True
-    adj = (inc.T.astype(np.int64) @ inc.astype(np.int64)) > 0
+    rows = faces[ok].reshape(-1)
+    inc = coo_matrix((np.ones(rows.size), (rows, np.repeat(labels[ok], 3))), shape=(x0.shape[0], L)).tocsc()
+    inc.data[:] = 1.0                                     # vertex × link incidence (duplicates summed)
+    adj = (inc.T @ inc).toarray() > 0
+    xh = np.concatenate([x0, np.ones((x0.shape[0], 1))], axis=1)
+    A = np.concatenate([R, t[..., None]], axis=-1)        # (P, L, 3, 4): x ↦ R x + t on x̃ = (x, 1)
     out = np.ones(L)
     for j in range(L):
         nb = np.flatnonzero(adj[j])
         nb = nb[nb != j]
         if nb.size == 0:
             continue
-        x = x0[inc[:, j]]
-        d = np.einsum("plab,nb->lpna", R[:, nb] - R[:, j:j + 1], x) + (t[:, nb] - t[:, j:j + 1]).transpose(1, 0, 2)[:, :, None]
-        D = d.reshape(nb.size, -1)
-        Q = D @ D.T
+        vj = inc.indices[inc.indptr[j]:inc.indptr[j + 1]]
+        S = xh[vj].T @ xh[vj]                             # Σ_v x̃ x̃ᵀ over the link's vertices
+        dA = A[:, nb] - A[:, j:j + 1]                     # d_k(v, p) = dA_k^p x̃_v
+        Q = np.einsum("pkab,bc,plac->kl", dA, S, dA, optimize=True)   # Σ_p Σ_v d_k · d_l
         single = float(np.min(np.diag(Q)))
         if single <= 1e-12 * max(float(np.max(np.diag(Q))), 1e-300):
             continue
@@ -219,7 +223,7 @@ def interpolating_links(x0: np.ndarray, faces: np.ndarray, labels: np.ndarray, R
     return out
 
 
-def _drop_interpolating(seg, k: int, fits: dict, progress=None):
+def _drop_non_bones(seg, k: int, fits: dict, progress=None):
     """From ``k``, while the fit has links that are not bones (:func:`spurious_links`), take that
     many links off and fit again. Returns (k, [(count, such links), ...])."""
     from .fit import fit

@@ -173,7 +173,7 @@ def test_links_auto_drops_interpolating_links_on_smooth_blends():
     segment), a 12th link is spent inside a blend and moves as a blend of its neighbours: the
     drop takes it off and the 11-link fit has no link that is not a bone."""
     scan, truth = samples.branching(blend=2.5)
-    k, steps = linkcount._drop_interpolating(F.Segmenter(scan), 12, {})
+    k, steps = linkcount._drop_non_bones(F.Segmenter(scan), 12, {})
     assert (k, steps) == (11, [(12, 1), (11, 0)])
 
 
