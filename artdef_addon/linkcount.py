@@ -53,7 +53,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.sparse import coo_matrix
 
 from . import skinning
 from .model import skin
@@ -66,7 +65,7 @@ class LinkChoice:
     tau: float
     reason: str
     tree_links: int = 0      # the re-cut tree's pick, before the whole fits
-    upward_links: int = 0    # after the whole fits upward, before interpolating links are dropped
+    upward_links: int = 0    # after the whole fits upward, before links that are not bones are dropped
     result: object = None    # the whole fit at ``links`` (fit.fit's defaults), when one was made
 
     def reusable(self, mode: str = "global", motion: str = "robust", skin: str | None = "auto"):
@@ -175,14 +174,9 @@ def spurious_links(x0: np.ndarray, faces: np.ndarray, result) -> np.ndarray:
     """(L,) bool: the links of a fit that are not bones — interpolating (ρ < ``INTERPOLATING``,
     :func:`interpolating_links`) or blend handles (Σ_v w_vl > ``HANDLE`` × the vertices of the
     link's own triangles). ``result``: a :class:`fit.FitResult`."""
-    labels = result.face_labels
     L = result.rotations.shape[1]
-    rho = interpolating_links(x0, faces, labels, result.rotations, result.translations)
-    ok = labels >= 0
-    rows = faces[ok].reshape(-1)
-    owned = coo_matrix((np.ones(rows.size), (rows, np.repeat(labels[ok], 3))), shape=(x0.shape[0], L)).tocsc()
-    owned.sum_duplicates()
-    n_owned = np.diff(owned.indptr)                      # vertices of each link's own triangles
+    rho = interpolating_links(x0, faces, result.face_labels, result.rotations, result.translations)
+    n_owned = np.diff(skinning.link_incidence(x0.shape[0], faces, result.face_labels, L).indptr)
     mass = result.weights[:, :L].sum(axis=0)
     return (rho < INTERPOLATING) | (mass > HANDLE * np.maximum(n_owned, 1))
 
@@ -198,10 +192,7 @@ def interpolating_links(x0: np.ndarray, faces: np.ndarray, labels: np.ndarray, R
     ``labels`` (T,) face labels (−1: none), R (P, L, 3, 3), t (P, L, 3).
     """
     L = R.shape[1]
-    ok = labels >= 0
-    rows = faces[ok].reshape(-1)
-    inc = coo_matrix((np.ones(rows.size), (rows, np.repeat(labels[ok], 3))), shape=(x0.shape[0], L)).tocsc()
-    inc.data[:] = 1.0                                     # vertex × link incidence (duplicates summed)
+    inc = skinning.link_incidence(x0.shape[0], faces, labels, L)
     adj = (inc.T @ inc).toarray() > 0
     xh = np.concatenate([x0, np.ones((x0.shape[0], 1))], axis=1)
     A = np.concatenate([R, t[..., None]], axis=-1)        # (P, L, 3, 4): x ↦ R x + t on x̃ = (x, 1)

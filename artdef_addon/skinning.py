@@ -295,11 +295,21 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
     return cand
 
 
+def link_incidence(n_vertices: int, faces: np.ndarray, labels: np.ndarray, L: int):
+    """Sparse (N, L) 0/1 matrix (CSC): vertex v touches a triangle of link l. Faces labelled −1
+    count for no link."""
+    ok = labels >= 0
+    rows = faces[ok].reshape(-1)
+    inc = coo_matrix((np.ones(rows.size), (rows, np.repeat(labels[ok], 3))), shape=(n_vertices, L)).tocsc()
+    inc.sum_duplicates()
+    inc.data[:] = 1.0
+    return inc
+
+
 def _candidates(vertices, faces, labels, L, rings, radius, ground):
     """(N, L) candidate links of every vertex (see :func:`candidate_links`); L counts the ground."""
     N = vertices.shape[0]
-    rows = faces.reshape(-1)
-    inc = np.asarray(coo_matrix((np.ones(rows.size), (rows, np.repeat(labels, 3))), shape=(N, L)).todense()) > 0
+    inc = link_incidence(N, faces, labels, L).toarray() > 0
     if ground is not None:
         inc[:, L - 1] = ground
     return candidate_links(vertices, faces, inc, rings=rings, radius=radius)
