@@ -581,6 +581,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
                 self.report({'ERROR'}, "The fit returned no pseudo-articulation for that load point")
                 return {'CANCELLED'}
             load_names = [self.load_index]
+        before = rig.datablock_snapshot()
         try:
             rig.build_rig(context, obj, model, job.tri_polygons, job.scan.kind, load_names,
                           self.frames_per_field)
@@ -588,7 +589,12 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
             rig.write_residual(obj.data, job.vertex_residual, scale)
         except Exception as err:
             traceback.print_exc()
-            rig.clear_rig(obj, context.scene)
+            try:
+                rig.clear_rig(obj, context.scene)
+            finally:
+                # whatever the build made and clear_rig did not know of yet
+                # (an action, armature or empty made just before the failure)
+                rig.remove_new_datablocks(before)
             self.report({'ERROR'}, f"Building the rig failed: {err}")
             return {'CANCELLED'}
         LAST_RESULTS[obj.name] = model
