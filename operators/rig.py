@@ -593,8 +593,9 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
         old = obj.vertex_groups.get(name)
         if old is not None:
             obj.vertex_groups.remove(old)
-        vg = _fill_vertex_group(obj, name, weights[:, l])
-        st.groups.add().name = vg.name
+        item = st.groups.add()  # recorded first: a failure while filling still clears it
+        item.name = name
+        item.name = _fill_vertex_group(obj, name, weights[:, l]).name
 
     # 2. armature, parenting, modifier
     greens = kind == "greens" and result.kappa is not None

@@ -30,6 +30,11 @@ EXT_ID = "artdef"
 ADDON_MODULE = f"bl_ext.user_default.{EXT_ID}"
 PLATFORM = "linux-x64"
 
+#: The scipy the zip bundles for each Python that Blender embeds (see
+#: blender_manifest.toml): Blender 4.5 LTS/5.0 run Python 3.11, 5.1+ Python 3.13.
+BUNDLED_SCIPY = {(3, 11): "1.15.3", (3, 13): "1.16.3"}
+PYTHON_TAG = f"python{sys.version_info[0]}.{sys.version_info[1]}"
+
 # Directories and files at the repository root that are not part of the
 # extension (mirror of [build] paths_exclude_pattern): a change in them does
 # not make dist/ stale.
