@@ -39,7 +39,7 @@ PYTHON_TAG = f"python{sys.version_info[0]}.{sys.version_info[1]}"
 # extension (mirror of [build] paths_exclude_pattern): a change in them does
 # not make dist/ stale.
 _NOT_PACKAGED = {
-    ".git", ".venv", ".ci", ".tools", "tests", "benchmarks", "scripts", "dist",
+    ".git", ".venv", ".venv-4.5", ".ci", ".tools", "tests", "benchmarks", "scripts", "dist",
     "out", "wheels-cache", "node_modules", "docs", "__pycache__", ".pytest_cache",
 }
 
