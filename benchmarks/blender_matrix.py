@@ -235,9 +235,12 @@ def run_one(label, python, zip_path):
 
 def table(results, zip_path):
     head = ["Blender", "Python", "numpy", "scipy (bundled)"] + list(STEPS) + ["time"]
-    lines = [f"Zip: `{Path(zip_path).name}` ({Path(zip_path).stat().st_size / 1e6:.0f} MB); "
-             "each Blender in a fresh process with no scipy of its own "
-             "(`python benchmarks/blender_matrix.py`).", "",
+    zdir = Path(zip_path).resolve().parent.parent
+    commit = subprocess.run(["git", "-C", str(zdir), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True).stdout.strip() or "?"
+    lines = [f"Zip: `{Path(zip_path).name}` ({Path(zip_path).stat().st_size / 1e6:.0f} MB, built "
+             f"by `make extension` in a checkout at {commit}); each Blender in a fresh process "
+             "with no scipy of its own (`python benchmarks/blender_matrix.py`).", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     notes = []
     for r in results:
