@@ -621,7 +621,8 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
         end = _build_load_sweep(empties, float(result.probe_load), frames_per_field)
     else:
         end = _build_replay(obj, arm, result, bone_names, key_names, frames_per_field)
-    _set_frame_range(st, context.scene, end)
+    if end is not None:  # None: the replay keeps the source's frames, the scene's range stays
+        _set_frame_range(st, context.scene, end)
     return arm
 
 
@@ -720,29 +721,33 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
 
 
 def _build_replay(obj, arm, result, bone_names, key_names, frames_per_field=10):
-    """Actions replaying the fields: rest at frame 0, field p at (p+1)·frames_per_field.
+    """Actions replaying the fields: rest at frame 0, field p at (p+1)·frames_per_field,
+    or, for a scan sampled from an animation or a sequence, every field at its
+    source frame (:func:`.timing.replay_timing`).
 
-    Returns the last frame of the replay.
+    Returns the last frame of the replay, or None when the replay keeps the
+    source's timing (the scene's frame range is then left alone).
     """
+    from .timing import replay_timing
     angles = np.asarray(result.angles, dtype=np.float64)
     locations = np.asarray(result.locations, dtype=np.float64)
     p = angles.shape[0]
-    step = max(int(frames_per_field), 1)
-    frames = np.arange(p + 1, dtype=np.float64) * step
-    end = int(p * step)
+    frames, field, from_source = replay_timing(obj.data, p, frames_per_field)
+    pick = field + 1                    # row 0 of np.r_[0, values]: the rest pose
+    first, end = int(frames[0]), int(frames[-1])
     action, new_fcurve = _new_action(arm, f"{arm.name}_replay")
     action["artdef_made"] = True
     action.use_frame_range = True
-    action.frame_start, action.frame_end = 0, end
+    action.frame_start, action.frame_end = first, end
     for l, bname in enumerate(bone_names):
         base = f'pose.bones["{bname}"]'
         for j in range(3):
             _key_curve(new_fcurve(f"{base}.rotation_euler", j, bname), frames,
-                       np.r_[0.0, angles[:, l, j]])
+                       np.r_[0.0, angles[:, l, j]][pick])
         if not all(arm.pose.bones[bname].lock_location) or np.any(locations[:, l]):
             for j in range(3):
                 _key_curve(new_fcurve(f"{base}.location", j, bname), frames,
-                           np.r_[0.0, locations[:, l, j]])
+                           np.r_[0.0, locations[:, l, j]][pick])
     keys = obj.data.shape_keys
     st = obj.artdef
     ad = keys.animation_data
@@ -750,11 +755,9 @@ def _build_replay(obj, arm, result, bone_names, key_names, frames_per_field=10):
     kaction, new_kcurve = _new_action(keys, f"{obj.name}_artdef_replay")
     kaction["artdef_made"] = True
     kaction.use_frame_range = True
-    kaction.frame_start, kaction.frame_end = 0, end
+    kaction.frame_start, kaction.frame_end = first, end
     st.key_action = kaction
     for c, kname in enumerate(key_names):
-        values = np.zeros(p + 1)
-        if c < p:
-            values[c + 1] = 1.0
+        values = (field == c).astype(np.float64)
         _key_curve(new_kcurve(f'key_blocks["{kname}"].value', 0, "ArtDef"), frames, values)
-    return end
+    return None if from_source else end

@@ -284,6 +284,7 @@ class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
             return {'CANCELLED'}
         new.data["artdef_source"] = obj.name
         new.data["artdef_frames"] = kept
+        new.data["artdef_sampled_frames"] = frames  # with the frames equal to the rest (replay timing)
         new.data["artdef_rest_frame"] = self.rest_frame if use_frame else -1
         _select_only(context, new)
         skipped = len(frames) - len(kept)
@@ -376,6 +377,11 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper):
             return {'CANCELLED'}
         mesh["artdef_source"] = os.path.basename(paths[0])
         mesh["artdef_rest_file"] = os.path.basename(paths[rest])
+        # replay timing: a file's number is its frame (the rest file and files equal to it: rest)
+        numbers = [sequence.split_number(os.path.basename(p))[1] for p in paths]
+        moved = [n for i, n in enumerate(numbers) if i != rest]
+        mesh["artdef_frames"] = [int(n) for n, m in zip(moved, moves) if m]
+        mesh["artdef_sampled_frames"] = [int(n) for n in numbers]
         obj = bpy.data.objects.new(mesh.name, mesh)
         context.collection.objects.link(obj)
         _select_only(context, obj)

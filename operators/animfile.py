@@ -1,0 +1,244 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Fit the file you have: an animated file Blender imports, as a tracked scan.
+
+``artdef.fields_from_file`` imports a .glb/.gltf, .fbx, .abc or .usd/.usdc/
+.usda/.usdz file with Blender's own importer (or a numbered OBJ/PLY sequence,
+a folder or a pattern, with ``artdef.import_mesh_sequence``), picks the
+animated mesh and samples it through ``artdef.fields_from_animation`` - the
+same code as the Fields from Animation button - over the file's own frames:
+the frames the file has keys at (an even step when they are evenly spaced,
+else every frame of their range), or the scene range an Alembic/USD importer
+set for a cache.  ``frame_start``/``frame_end``/``frame_step`` override it.
+
+The command line (``python -m artdef_addon fit FILE``) runs this operator.
+"""
+
+import glob
+import os
+
+import bpy
+from bpy.props import IntProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper
+
+from . import compat
+
+#: extension -> (importer operator path, keyword arguments)
+IMPORTERS = {
+    ".glb": ("import_scene.gltf", {}),
+    ".gltf": ("import_scene.gltf", {}),
+    ".fbx": ("import_scene.fbx", {}),
+    ".abc": ("wm.alembic_import", {}),
+    ".usd": ("wm.usd_import", {}),
+    ".usdc": ("wm.usd_import", {}),
+    ".usda": ("wm.usd_import", {}),
+    ".usdz": ("wm.usd_import", {}),
+}
+SEQUENCE_EXTENSIONS = (".obj", ".ply")
+#: Modifiers whose evaluation replays a cache (no action to read keys from).
+CACHE_MODIFIERS = frozenset(("MESH_SEQUENCE_CACHE", "MESH_CACHE"))
+
+
+def file_kind(path):
+    """'npz', 'animated', 'sequence' or None for a path the fit can read."""
+    if os.path.isdir(path) or any(c in os.path.basename(path) for c in "*?["):
+        return "sequence"
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".npz":
+        return "npz"
+    if ext in IMPORTERS:
+        return "animated"
+    if ext in SEQUENCE_EXTENSIONS:
+        return "sequence"
+    return None
+
+
+def _operator(path):
+    mod, name = path.split(".")
+    return getattr(getattr(bpy.ops, mod), name)
+
+
+def _sequence_path(path):
+    """A folder or the first file of a numbered OBJ/PLY sequence (a pattern is
+    resolved to its first match)."""
+    if any(c in os.path.basename(path) for c in "*?["):
+        matches = sorted(p for p in glob.glob(path) if p.lower().endswith(SEQUENCE_EXTENSIONS))
+        if not matches:
+            raise ValueError(f"no .obj/.ply file matches {path}")
+        return matches[0]
+    return path
+
+
+def _is_custom_shape(obj):
+    """A mesh used only to draw bones (the glTF importer adds one)."""
+    for arm in bpy.data.objects:
+        if arm.type == 'ARMATURE' and arm.pose is not None:
+            if any(pb.custom_shape == obj for pb in arm.pose.bones):
+                return True
+    return False
+
+
+def _actions_moving(obj):
+    """(action, slot) pairs that move mesh object ``obj``: its own, its shape
+    keys', its armatures' and its parents'."""
+    ids = [obj, obj.data.shape_keys]
+    for mod in obj.modifiers:
+        if mod.type == 'ARMATURE' and mod.object is not None:
+            ids.append(mod.object)
+    parent = obj.parent
+    while parent is not None:
+        ids.append(parent)
+        parent = parent.parent
+    out = []
+    for id_data in ids:
+        ad = getattr(id_data, "animation_data", None) if id_data is not None else None
+        if ad is not None and ad.action is not None:
+            out.append((ad.action, getattr(ad, "action_slot", None)))
+    return out
+
+
+def animated_mesh(objects):
+    """The mesh to fit among ``objects``: the one with the most vertices of
+    those that something animates (an action on it, its shape keys, armature
+    or parents, or a cache modifier); None if nothing moves."""
+    best = None
+    for obj in objects:
+        if obj.type != 'MESH' or len(obj.data.polygons) == 0 or _is_custom_shape(obj):
+            continue
+        moving = bool(_actions_moving(obj)) or any(m.type in CACHE_MODIFIERS for m in obj.modifiers)
+        if moving and (best is None or len(obj.data.vertices) > len(best.data.vertices)):
+            best = obj
+    return best
+
+
+def file_frames(obj, scene):
+    """(start, end, step) the file animates ``obj`` over: its keys' frames when
+    it has actions (their even spacing as step, else 1), else the scene's range
+    (caches: the importer sets it)."""
+    keys = set()
+    for action, slot in _actions_moving(obj):
+        keys.update(round(f) for f in compat.keyed_frames(action, slot))
+    if len(keys) >= 2:
+        frames = sorted(keys)
+        steps = {b - a for a, b in zip(frames, frames[1:])}
+        step = steps.pop() if len(steps) == 1 else 1
+        return frames[0], frames[-1], step
+    return scene.frame_start, scene.frame_end, 1
+
+
+def import_animated(context, path):
+    """Import ``path`` with Blender's importer; return the new objects."""
+    ext = os.path.splitext(path)[1].lower()
+    op_path, kwargs = IMPORTERS[ext]
+    before = set(bpy.data.objects)
+    result = _operator(op_path)(filepath=path, **kwargs)
+    if 'FINISHED' not in result:
+        raise ValueError(f"Blender's importer could not read {os.path.basename(path)}")
+    return [o for o in bpy.data.objects if o not in before]
+
+
+class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
+    """Import an animated file (glTF, FBX, Alembic, USD, or a numbered OBJ/PLY sequence) with Blender's importer and sample its animated mesh over the file's own frames into a tracked scan (Fields from Animation), ready to fit"""
+    bl_idname = "artdef.fields_from_file"
+    bl_label = "Import Animated File as Scan"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    filter_glob: StringProperty(
+        default="*.glb;*.gltf;*.fbx;*.abc;*.usd;*.usdc;*.usda;*.usdz;*.obj;*.ply",
+        options={'HIDDEN'})
+    filename_ext = ""
+    frame_start: IntProperty(name="Start", default=0,
+                             description="First frame sampled (unset: the file's first key)")
+    frame_end: IntProperty(name="End", default=0,
+                           description="Last frame sampled (unset: the file's last key)")
+    frame_step: IntProperty(name="Step", default=1, min=1,
+                            description="Sample every n-th frame (unset: the file's key spacing)")
+
+    @classmethod
+    def poll(cls, context):
+        if context.mode != 'OBJECT':
+            cls.poll_message_set("Switch to Object Mode")
+            return False
+        return True
+
+    def execute(self, context):
+        path = bpy.path.abspath(self.filepath)
+        kind = file_kind(path)
+        if kind not in ("animated", "sequence") or (kind == "animated" and not os.path.isfile(path)):
+            what = "not found" if kind == "animated" else "not an animated file Blender imports"
+            self.report({'ERROR'}, f"{os.path.basename(path) or path}: {what}")
+            return {'CANCELLED'}
+        if kind == "sequence":
+            try:
+                first = _sequence_path(path)
+            except ValueError as err:
+                self.report({'ERROR'}, str(err))
+                return {'CANCELLED'}
+            return bpy.ops.artdef.import_mesh_sequence(filepath=first)
+        try:
+            new = import_animated(context, path)
+        except (RuntimeError, ValueError) as err:
+            self.report({'ERROR'}, f"Cannot import {os.path.basename(path)}: {str(err).strip()}")
+            return {'CANCELLED'}
+        obj = animated_mesh(new)
+        if obj is None:
+            self._remove(new)
+            self.report({'ERROR'}, f"{os.path.basename(path)}: no animated mesh in the file")
+            return {'CANCELLED'}
+        start, end, step = file_frames(obj, context.scene)
+        props = self.properties
+        if props.is_property_set("frame_start"):
+            start = self.frame_start
+        if props.is_property_set("frame_end"):
+            end = self.frame_end
+        if props.is_property_set("frame_step"):
+            step = self.frame_step
+        scene = context.scene
+        for _ in range(2):  # the file's own range (start may not pass end: set twice)
+            scene.frame_start, scene.frame_end = start, max(end, start)
+        for o in context.view_layer.objects:
+            o.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+        with context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+            result = bpy.ops.artdef.fields_from_animation(frame_start=start, frame_end=end,
+                                                          frame_step=step)
+        if 'FINISHED' not in result:
+            self._remove(new)
+            self.report({'ERROR'}, f"{os.path.basename(path)}: sampling '{obj.name}' failed "
+                                   "(see the Info log)")
+            return {'CANCELLED'}
+        scan_obj = context.view_layer.objects.active
+        scan_obj.data["artdef_source_file"] = os.path.basename(path)
+        # The source stays for comparison (and bone names) but out of sight:
+        # the scan copy sits exactly on it.
+        for o in new:
+            o.hide_set(True)
+            o.hide_render = True
+        self.report({'INFO'}, f"'{scan_obj.name}': '{obj.name}' of {os.path.basename(path)} "
+                              f"sampled over frames {start}-{end} step {step}")
+        return {'FINISHED'}
+
+    @staticmethod
+    def _remove(objects):
+        for o in objects:
+            bpy.data.objects.remove(o, do_unlink=True)
+
+
+def menu_import(self, context):
+    self.layout.operator(ARTDEF_OT_fields_from_file.bl_idname,
+                         text="ArtDef Animated File as Scan (.glb/.fbx/.abc/.usd)")
+
+
+classes = (ARTDEF_OT_fields_from_file,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(menu_import)
+
+
+def unregister():
+    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
