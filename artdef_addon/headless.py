@@ -238,6 +238,7 @@ def export_rig(path: str, mesh, fmt: str | None = None) -> str:
     the replay's frames, no debug colours, at most 4 influences, a Green's rig
     baked); ``fmt`` 'GLB' | 'GLTF_SEPARATE' | 'FBX' (default: from the name)."""
     bpy = _bpy()
+    ensure_registered()
     path = _abs(path)
     kwargs = {"filepath": path}
     if fmt is not None:
@@ -530,6 +531,9 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
     if 'FINISHED' not in result:
         raise RuntimeError(f"artdef.fit({fit_kwargs}) returned {set(result)}")
     armature = _find_armature(mesh)
+    if armature is not None:  # bones an animator can read: source joint names, else root-first
+        with bpy.context.temp_override(active_object=mesh, object=mesh, selected_objects=[mesh]):
+            bpy.ops.artdef.name_bones(scheme='AUTO')
 
     written = {}
     if blend is not None:

@@ -10,13 +10,15 @@
 * ``animfile`` — ``artdef.fields_from_file`` (an animated glTF/FBX/Alembic/USD file or
   a mesh sequence, sampled through Fields from Animation);
 * ``export`` — ``artdef.export_rig`` (glTF/FBX of the rig only, engine settings);
+* ``finalize`` — ``artdef.finalize`` (bake drivers, drop helpers and records);
+* ``naming`` — ``artdef.name_bones`` (root-first numbers, source joint names, one bone);
 * ``sequence`` — numbered OBJ/PLY files (pure numpy, no bpy);
 * ``fitquality`` — residual and per-link figures of a fit (pure numpy).
 """
 
-from . import props, ops, sources, animfile, export
+from . import props, ops, sources, animfile, export, finalize, naming
 
-_modules = (props, ops, sources, animfile, export)
+_modules = (props, ops, sources, animfile, export, finalize, naming)
 
 
 def register():

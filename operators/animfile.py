@@ -209,6 +209,9 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
             return {'CANCELLED'}
         scan_obj = context.view_layer.objects.active
         scan_obj.data["artdef_source_file"] = os.path.basename(path)
+        clips = _actions_moving(obj)
+        if clips:  # the exported clip keeps the source clip's name
+            scan_obj.data["artdef_clip"] = clips[0][0].name
         # The source stays for comparison (and bone names) but out of sight:
         # the scan copy sits exactly on it.
         for o in new:

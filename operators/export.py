@@ -134,7 +134,20 @@ def _action_range(obj, arm):
     return int(min(r[0] for r in ranges)), int(max(r[1] for r in ranges))
 
 
-def _gltf(path, fmt, clip_name, debug_attributes):
+def _key_step(obj, arm):
+    """The frame step of the rig's keys when they are evenly spaced (the
+    exporters then sample exactly at the keys: at the source's frames), else 1."""
+    frames = set()
+    for id_data in (arm, obj.data.shape_keys):
+        ad = getattr(id_data, "animation_data", None) if id_data is not None else None
+        if ad is not None and ad.action is not None:
+            frames.update(round(f) for f in compat.keyed_frames(ad.action))
+    frames = sorted(frames)
+    steps = {b - a for a, b in zip(frames, frames[1:])}
+    return steps.pop() if len(steps) == 1 and next(iter(steps)) >= 1 else 1
+
+
+def _gltf(path, fmt, clip_name, debug_attributes, step=1):
     options = dict(
         filepath=path, check_existing=False, export_format=fmt,
         use_selection=True, use_visible=False, use_active_collection=False,
@@ -144,6 +157,7 @@ def _gltf(path, fmt, clip_name, debug_attributes):
         export_influence_nb=4, export_all_influences=False,
         export_morph=True, export_morph_normal=True, export_morph_animation=True,
         export_animations=True, export_force_sampling=True, export_frame_range=False,
+        export_frame_step=int(step),
         export_anim_slide_to_zero=False, export_negative_frame='SLIDE',
         # the armature's and the shape keys' actions as ONE animation
         export_animation_mode='ACTIVE_ACTIONS',
@@ -156,7 +170,7 @@ def _gltf(path, fmt, clip_name, debug_attributes):
     bpy.ops.export_scene.gltf(**compat.supported_options(bpy.ops.export_scene.gltf, options))
 
 
-def _fbx(path, debug_attributes):
+def _fbx(path, debug_attributes, step=1):
     options = dict(
         filepath=path, check_existing=False, use_selection=True,
         object_types={'ARMATURE', 'MESH'},
@@ -167,7 +181,7 @@ def _fbx(path, debug_attributes):
         primary_bone_axis='Y', secondary_bone_axis='X',
         bake_anim=True, bake_anim_use_all_bones=True, bake_anim_use_nla_strips=False,
         bake_anim_use_all_actions=False,          # the active actions, one take
-        bake_anim_force_startend_keying=True, bake_anim_step=1.0,
+        bake_anim_force_startend_keying=True, bake_anim_step=float(step),
         bake_anim_simplify_factor=0.0,            # every frame, no key reduction
         colors_type='SRGB' if debug_attributes else 'NONE',
         use_custom_props=False,
@@ -202,9 +216,11 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
     copy, baked = None, None
     try:
         arm.hide_set(False)
+        step = 1
         if _driven_bone_channels(arm):           # a Green's rig: bake its load sweep
             baked = _bake_driven_pose(context, arm)
         else:
+            step = _key_step(mesh_obj, arm)
             span = _action_range(mesh_obj, arm)
             if span is not None:                 # FBX bakes over the scene's range
                 for _ in range(2):
@@ -219,9 +235,9 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
         view_layer.objects.active = copy
         with context.temp_override(active_object=copy, object=copy, selected_objects=[copy, arm]):
             if fmt == 'FBX':
-                _fbx(path, debug_attributes)
+                _fbx(path, debug_attributes, step)
             else:
-                _gltf(path, fmt, clip_name, debug_attributes)
+                _gltf(path, fmt, clip_name, debug_attributes, step)
     finally:
         if copy is not None:
             data = copy.data

@@ -20,6 +20,7 @@ class ARTDEF_PT_main(bpy.types.Panel):
         col = layout.column(align=True)
         col.operator("artdef.import_scan", icon='IMPORT')
         col.operator("artdef.import_mesh_sequence", icon='FILE_FOLDER')
+        col.operator("artdef.fields_from_file", icon='FILE_MOVIE')
         obj = context.active_object
         if obj is None or obj.type != 'MESH':
             layout.label(text="Select a mesh to fit", icon='INFO')
@@ -86,6 +87,10 @@ class ARTDEF_PT_main(bpy.types.Panel):
         row = box.row(align=True)
         row.operator("artdef.preview_links", icon='COLOR').links = st.links
         row.operator("artdef.clear_rig", icon='TRASH')
+        if rig.has_rig(obj):  # hand-off: engines (Export Rig), animators (Finalize)
+            row = box.row(align=True)
+            row.operator("artdef.export_rig", icon='EXPORT')
+            row.operator("artdef.finalize", icon='CHECKMARK')
 
         if st.has_fit:
             box = layout.box()
