@@ -48,6 +48,9 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--glb", help="also export the rig as glTF binary (needs bpy): the fitted mesh "
                                  "and its armature only, one clip at the source's frames")
     f.add_argument("--fbx", help="also export the rig as FBX (needs bpy), like --glb")
+    f.add_argument("--rotation-only", action="store_true",
+                   help="with --blend/--glb/--fbx: joints only rotate, bones keep their length, "
+                        "only the root translates (engines); prints the error this adds")
     f.add_argument("--png", help="also render a preview PNG (needs bpy)")
     f.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     s = sub.add_parser("sample", help="write a built-in sample scan")
@@ -127,6 +130,8 @@ def _cmd_fit(a) -> int:
             raise _BadInput(f"output path is a directory: {path}")
         if path and os.path.abspath(path) == os.path.abspath(a.scan):
             raise _BadInput(f"output would overwrite the input: {path}")
+    if a.rotation_only and not (a.blend or a.glb or a.fbx):
+        raise _BadInput("--rotation-only applies to the rig: add --blend, --glb or --fbx")
     kind = headless.input_kind(a.scan)
     if kind is None:
         raise _BadInput(f"{a.scan}: not a scan (.npz), an animated file "
@@ -200,7 +205,8 @@ def _cmd_fit(a) -> int:
                       p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
                       memory_budget=float(a.memory_budget))
         written = headless.build_outputs(a.scan, kwargs, a.blend, a.glb, a.png, fbx=a.fbx,
-                                         mesh=prepared)
+                                         mesh=prepared, rotation_only=a.rotation_only)
+    rot_err = written.pop("rotation_only_error", None) if written else None
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
@@ -211,6 +217,9 @@ def _cmd_fit(a) -> int:
             f = sc.fields()
             expl = 100.0 * (1.0 - result.rms_articulation ** 2 / max(np.mean(np.sum(f * f, -1)), 1e-300))
             print(f"articulation explains {expl:.2f}% of the fields' energy")
+        if rot_err is not None:
+            print(f"rotation-only joints: added error max {rot_err[0]:.3f}%, "
+                  f"rms {rot_err[1]:.3f}% of the diagonal")
         for path in (a.output, *written.values()):
             if path:
                 print(f"wrote {path}")

@@ -498,7 +498,7 @@ def scan_from_file(path: str, frames=None):
 
 def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
                   glb: str | None, png: str | None, fbx: str | None = None,
-                  mesh=None) -> dict:
+                  mesh=None, rotation_only: bool = False) -> dict:
     """Fit ``scan_path`` with ``bpy.ops.artdef.fit(**fit_kwargs)`` in a fresh
     scene and write the requested outputs; return ``{"blend"|"glb"|"png": path}``
     for those written.  ``fit_kwargs`` keys are the operator's property names
@@ -534,8 +534,15 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
     if armature is not None:  # bones an animator can read: source joint names, else root-first
         with bpy.context.temp_override(active_object=mesh, object=mesh, selected_objects=[mesh]):
             bpy.ops.artdef.name_bones(scheme='AUTO')
+            if rotation_only:
+                if 'FINISHED' not in bpy.ops.artdef.rotation_only():
+                    raise RuntimeError("--rotation-only: the rig has no action (Green's rigs "
+                                       "are driven by their loads)")
 
     written = {}
+    if rotation_only and mesh.data.get("artdef_rotation_only_error") is not None:
+        worst, rms = mesh.data["artdef_rotation_only_error"]
+        written["rotation_only_error"] = (float(worst), float(rms))
     if blend is not None:
         written["blend"] = save_blend(blend)
     if glb is not None:

@@ -12,13 +12,14 @@
 * ``export`` — ``artdef.export_rig`` (glTF/FBX of the rig only, engine settings);
 * ``finalize`` — ``artdef.finalize`` (bake drivers, drop helpers and records);
 * ``naming`` — ``artdef.name_bones`` (root-first numbers, source joint names, one bone);
+* ``engine`` — ``artdef.rotation_only`` (rotation-only joints, fixed bone lengths);
 * ``sequence`` — numbered OBJ/PLY files (pure numpy, no bpy);
 * ``fitquality`` — residual and per-link figures of a fit (pure numpy).
 """
 
-from . import props, ops, sources, animfile, export, finalize, naming
+from . import props, ops, sources, animfile, export, finalize, naming, engine
 
-_modules = (props, ops, sources, animfile, export, finalize, naming)
+_modules = (props, ops, sources, animfile, export, finalize, naming, engine)
 
 
 def register():

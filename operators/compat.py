@@ -81,3 +81,19 @@ def supported_options(op, options):
     ``bpy.ops.export_scene.gltf``) does not have in this Blender."""
     names = {p.identifier for p in op.get_rna_type().properties}
     return {k: v for k, v in options.items() if k in names}
+
+
+def remove_fcurve(action, fcurve):
+    """Remove ``fcurve`` from ``action``.  4.4+: from the channel bag holding it
+    (5.0 has no ``Action.fcurves``); 4.2/4.3: ``Action.fcurves.remove``."""
+    layers = getattr(action, "layers", None)
+    if layers is not None and len(layers):
+        for layer in layers:
+            for strip in layer.strips:
+                for bag in getattr(strip, "channelbags", ()):
+                    for fc in bag.fcurves:
+                        if fc == fcurve:
+                            bag.fcurves.remove(fc)
+                            return
+        return
+    action.fcurves.remove(fcurve)

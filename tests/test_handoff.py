@@ -206,9 +206,12 @@ def test_fit_animated_glb_exports_one_clean_rig(cli_fit, source_glb):
     assert not any(a.startswith("_") for a in attrs), attrs
     for p in prims:  # at most 4 influences: one JOINTS/WEIGHTS set
         assert "WEIGHTS_0" in p["attributes"] and "WEIGHTS_1" not in p["attributes"]
-    # no node of the source character (its bones, its mesh)
+    # only the rig: its mesh and its joints (no node of the source character, no
+    # armature object); the joints are named after the source's bones
     names = {n.get("name") for n in gltf["nodes"]}
-    assert not names & set(BONES), names
+    assert len(gltf["nodes"]) == 1 + len(gltf["skins"][0]["joints"]), names
+    assert "Leg" not in names and "LegRig" not in names
+    assert set(BONES) <= names, names
     # one animation, keyed at the source's times (no rest key at 0, same length)
     assert len(gltf["animations"]) == 1
     assert glb_times(gltf, binary) == glb_times(src, src_bin)
@@ -260,8 +263,11 @@ def test_blender_script_fits_an_animated_file(source_glb, tmp_path):
     """``blender -b -P scripts/artdef_fit.py -- fit ...``, run as plain Python with bpy,
     with --frames choosing every 10th frame."""
     out = tmp_path / "rig.glb"
-    _ok(_run([str(REPO_ROOT / "scripts" / "artdef_fit.py"), "--", "fit", str(source_glb),
-              "--links", "3", "--frames", "1:41:10", "--glb", str(out), "-q"], cwd=tmp_path))
+    proc = _ok(_run([str(REPO_ROOT / "scripts" / "artdef_fit.py"), "--", "fit", str(source_glb),
+                     "--links", "3", "--frames", "1:41:10", "--glb", str(out),
+                     "--rotation-only"], cwd=tmp_path))
+    line = [l for l in proc.stdout.splitlines() if l.startswith("rotation-only joints")]
+    assert len(line) == 1 and "added error max" in line[0], proc.stdout[-2000:]
     gltf, binary = read_glb(out)
     assert len(gltf["meshes"]) == 1 and len(gltf["skins"]) == 1
     assert glb_times(gltf, binary)[0] == pytest.approx(1 / 24, abs=1e-4)
@@ -496,3 +502,100 @@ def test_tree_order_is_root_first():
     assert order[0] == 2
     pos = {l: i for i, l in enumerate(order)}
     assert pos[0] < pos[1] and pos[3] < pos[4]
+
+
+# --------------------------------------------------------------------------
+# 5. engine-friendly motion
+# --------------------------------------------------------------------------
+
+def test_rotation_only_joints_keep_bone_lengths_and_report_the_error(fitted_character,
+                                                                     installed_addon):
+    scan_obj, source, _ = fitted_character
+    compat = importlib.import_module(installed_addon + ".operators.compat")
+    arm = scan_obj.artdef.rig
+    # make the fitted joints imperfect: a child bone translates a little at frame 11
+    child = next(b for b in arm.data.bones if b.parent is not None)
+    pb = arm.pose.bones[child.name]
+    for f, x in ((1, 0.0), (11, 0.03), (21, 0.0)):
+        pb.location = (x, 0.0, 0.0)
+        pb.keyframe_insert("location", frame=f)
+    assert bpy.ops.artdef.rotation_only() == {'FINISHED'}
+    paths = {(fc.data_path.split('"')[1], fc.data_path.rsplit(".", 1)[1])
+             for fc in compat.action_fcurves(arm.animation_data.action)}
+    children = {b.name for b in arm.data.bones if b.parent is not None}
+    assert not {(b, p) for b, p in paths if b in children and p in ("location", "scale")}
+    worst, rms = scan_obj.data["artdef_rotation_only_error"]
+    # the 0.03 translation removed at frame 11 is what it reports (diagonal ~3.03)
+    diag = np.linalg.norm(np.ptp(np.array([v.co for v in scan_obj.data.vertices]), axis=0))
+    assert worst == pytest.approx(100 * 0.03 / diag, rel=0.05)
+    assert 0 < rms < worst
+    # bone lengths fixed: every child bone's head stays at its parent's joint
+    bpy.context.scene.frame_set(11)
+    for b in arm.pose.bones:
+        if b.parent is not None:
+            rest_offset = (b.bone.parent.matrix_local.inverted() @ b.bone.matrix_local).translation
+            posed_offset = (b.parent.matrix.inverted() @ b.matrix).translation
+            assert (posed_offset - rest_offset).length < 1e-5
+
+
+# --------------------------------------------------------------------------
+# 6. plain words in the panel
+# --------------------------------------------------------------------------
+
+def _draw(closed=True):
+    from test_blender_operators import _Layout
+
+    class Layout(_Layout):
+        def _sub(self, *args, **kw):
+            return Layout(self.log)
+        box = row = column = split = _sub
+
+        def panel(self, idname, default_closed=True):
+            self.log.append(("panel", idname))
+            return Layout(self.log), (None if closed else Layout(self.log))
+
+    log = []
+    bpy.types.ARTDEF_PT_main.draw(type("P", (), {"layout": Layout(log)})(), bpy.context)
+    return log
+
+
+def test_panel_shows_greens_settings_only_for_greens_and_the_rest_under_advanced(
+        clean_scene, installed_addon, tmp_path):
+    obj, _arm = build_character(last_frame=11)
+    assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=11,
+                                                frame_step=KEY_STEP) == {'FINISHED'}
+    log = _draw(closed=True)
+    props = {e[1] for e in log if e[0] == "prop"}
+    assert not props & {"mode", "p_max", "load_index"}          # tracked scan
+    assert not props & {"motion", "skin", "reduce", "memory_budget"}  # Advanced is closed
+    assert ("panel", "ARTDEF_fit_advanced") in log
+    props = {e[1] for e in _draw(closed=False) if e[0] == "prop"}
+    assert {"motion", "reduce", "memory_budget"} <= props
+    scan_mod = importlib.import_module(installed_addon + ".artdef_addon.scan")
+    samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
+    npz = tmp_path / "greens.npz"
+    scan_mod.save_scan(npz, samples.make("greens_rod"))
+    assert bpy.ops.artdef.import_scan(filepath=str(npz)) == {'FINISHED'}
+    props = {e[1] for e in _draw() if e[0] == "prop"}
+    assert {"mode", "p_max"} <= props
+
+
+def test_auto_links_reason_in_one_plain_sentence(clean_scene, installed_addon):
+    wording = importlib.import_module(installed_addon + ".operators.wording")
+    obj, _arm = build_character(last_frame=21)
+    assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=21,
+                                                frame_step=KEY_STEP) == {'FINISHED'}
+    scan_obj = bpy.context.active_object
+    assert bpy.ops.artdef.fit(auto_links=True, max_links=6) == {'FINISHED'}
+    errors = list(scan_obj["artdef_link_errors"])
+    links = scan_obj.artdef.fit_links
+    assert len(errors) >= links and errors[0] > errors[links - 1]
+    sentence = wording.plain_link_reason(links, errors)
+    assert sentence.endswith(".") and ". " not in sentence      # one sentence
+    assert "tau" not in sentence and "k^" not in sentence and "log scale" not in sentence
+    assert sentence.startswith(f"{links} links:")
+    labels = [e[1] for e in _draw(closed=True) if e[0] == "label"]
+    assert " ".join(labels).find("a rigid skeleton") >= 0
+    assert ("panel", "ARTDEF_link_curve") in _draw(closed=True)
+    curve = [e[1] for e in _draw(closed=False) if e[0] == "label" and "links  " in e[1]]
+    assert len(curve) == len(errors) and curve[links - 1].endswith("<")
