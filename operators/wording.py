@@ -13,11 +13,10 @@ def plain_link_reason(links, errors):
         return ""
     chosen = errors[min(links, len(errors)) - 1]
     best = min(errors)
-    more = (f"; even {len(errors)} links would only bring it to {best:.1f}%"
+    more = (f"; even {len(errors)} would only get it to {best:.1f}%"
             if len(errors) > links and best < chosen else "")
-    return (f"{links} links: a rigid skeleton this size explains the motion up to "
-            f"{chosen:.1f}% (one bone: {errors[0]:.0f}%){more}, so more bones would mostly "
-            f"add clutter.")
+    return (f"{links} links leave {chosen:.1f}% of the motion unexplained (one bone leaves "
+            f"{errors[0]:.0f}%){more}, so more bones would mostly add clutter.")
 
 
 def error_curve_lines(errors, links):
