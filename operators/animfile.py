@@ -17,6 +17,7 @@ import glob
 import os
 
 import bpy
+import numpy as np
 from bpy.props import IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
@@ -125,6 +126,89 @@ def file_frames(obj, scene):
     return scene.frame_start, scene.frame_end, 1
 
 
+def armature_clips(obj):
+    """(armature, [actions]) when an armature moving ``obj`` has several clips:
+    its active action and the actions of its NLA tracks (where Blender's glTF and
+    FBX importers put a file's other animations); else (None, [])."""
+    for mod in obj.modifiers:
+        if mod.type == 'ARMATURE' and mod.object is not None:
+            ad = mod.object.animation_data
+            if ad is None:
+                continue
+            actions = [ad.action] if ad.action is not None else []
+            for track in ad.nla_tracks:
+                for strip in track.strips:
+                    if strip.action is not None and strip.action not in actions:
+                        actions.append(strip.action)
+            if len(actions) > 1:
+                return mod.object, actions
+    return None, []
+
+
+def _even_range(frames):
+    frames = sorted(set(int(round(f)) for f in frames))
+    steps = {b - a for a, b in zip(frames, frames[1:])}
+    return frames[0], frames[-1], (steps.pop() if len(steps) == 1 else 1)
+
+
+def sample_clips(context, obj, arm, actions):
+    """Sample ``obj`` once per clip (each action made the armature's active one,
+    NLA off meanwhile) through ``artdef.fields_from_animation``, and merge the
+    scans into the first copy: its fields are every clip's, in clip order, with
+    ``artdef_field_clips``/``artdef_clip_names``/``artdef_clip_sampled`` for the
+    replay (one action per clip).  Returns the scan object or None (reported)."""
+    from ..artdef_addon import scan as _scan
+    from . import io
+    ad = arm.animation_data
+    saved = (ad.action, getattr(ad, "action_slot", None), ad.use_nla)
+    copies, frames, clips, sampled, names = [], [], [], {}, []
+    try:
+        ad.use_nla = False
+        for c, action in enumerate(actions):
+            compat.assign_action(arm, action)
+            start, end, step = _even_range(compat.keyed_frames(action))
+            context.view_layer.objects.active = obj
+            with context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+                result = bpy.ops.artdef.fields_from_animation(frame_start=start, frame_end=end,
+                                                              frame_step=step)
+            if 'FINISHED' not in result:
+                return None
+            copy = context.view_layer.objects.active
+            copies.append(copy)
+            kept = [int(f) for f in copy.data["artdef_frames"]]
+            frames += kept
+            clips += [c] * len(kept)
+            sampled[str(len(names))] = [int(f) for f in copy.data["artdef_sampled_frames"]]
+            names.append(action.name)
+        first = copies[0]
+        scans = [io.read_scan(c).scan for c in copies]
+        merged = _scan.validate_scan(_scan.Scan(
+            scans[0].vertices, scans[0].faces,
+            displacements=np.concatenate([s.displacements for s in scans])))
+        io.write_scan(first.data, merged)
+        first.data["artdef_frames"] = frames
+        first.data["artdef_field_clips"] = clips
+        first.data["artdef_clip_names"] = names
+        first.data["artdef_clip_sampled"] = sampled
+        first.data["artdef_clip"] = names[0]
+        if "artdef_sampled_frames" in first.data:
+            del first.data["artdef_sampled_frames"]
+        for other in copies[1:]:
+            data = other.data
+            bpy.data.objects.remove(other, do_unlink=True)
+            bpy.data.meshes.remove(data)
+        copies = copies[:1]
+        return first
+    finally:
+        compat.assign_action(arm, saved[0])
+        ad.use_nla = saved[2]
+        if len(copies) > 1:  # failed half way: nothing of the sampling stays
+            for other in copies:
+                data = other.data
+                bpy.data.objects.remove(other, do_unlink=True)
+                bpy.data.meshes.remove(data)
+
+
 def import_animated(context, path):
     """Import ``path`` with Blender's importer; return the new objects."""
     ext = os.path.splitext(path)[1].lower()
@@ -184,8 +268,28 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
             self._remove(new)
             self.report({'ERROR'}, f"{os.path.basename(path)}: no animated mesh in the file")
             return {'CANCELLED'}
-        start, end, step = file_frames(obj, context.scene)
         props = self.properties
+        arm, clips = armature_clips(obj)
+        if clips and not any(props.is_property_set(p) for p in ("frame_start", "frame_end",
+                                                                 "frame_step")):
+            scan_obj = sample_clips(context, obj, arm, clips)
+            if scan_obj is None:
+                self._remove(new)
+                self.report({'ERROR'}, f"{os.path.basename(path)}: sampling '{obj.name}' failed "
+                                       "(see the Info log)")
+                return {'CANCELLED'}
+            scan_obj.data["artdef_source_file"] = os.path.basename(path)
+            for o in new:
+                o.hide_set(True)
+                o.hide_render = True
+            for o in context.view_layer.objects:
+                o.select_set(o == scan_obj)
+            context.view_layer.objects.active = scan_obj
+            self.report({'INFO'}, f"'{scan_obj.name}': '{obj.name}' of {os.path.basename(path)}, "
+                                  f"{len(clips)} clips ({', '.join(a.name for a in clips)}) "
+                                  f"sampled at their own frames")
+            return {'FINISHED'}
+        start, end, step = file_frames(obj, context.scene)
         if props.is_property_set("frame_start"):
             start = self.frame_start
         if props.is_property_set("frame_end"):

@@ -97,3 +97,26 @@ def remove_fcurve(action, fcurve):
                             return
         return
     action.fcurves.remove(fcurve)
+
+
+# --------------------------------------------------------------------------
+# NLA
+# --------------------------------------------------------------------------
+# 4.4+: an NLA strip plays one slot of its action (``NlaStrip.action_slot``);
+# it is picked automatically only when the slot's name matches the ID.  4.2:
+# no slots.
+
+def nla_clip_track(id_data, name, action, start):
+    """A muted NLA track ``name`` on ``id_data`` holding ``action`` from frame
+    ``start`` (how Blender's glTF importer stores a file's animations; the glTF
+    exporter's NLA Tracks mode writes one animation per track name)."""
+    ad = id_data.animation_data or id_data.animation_data_create()
+    track = ad.nla_tracks.new()
+    track.name = name
+    strip = track.strips.new(name, int(start), action)
+    if hasattr(strip, "action_slot") and strip.action_slot is None:
+        slots = [s for s in getattr(action, "slots", ()) if s.target_id_type == id_data.id_type]
+        if slots:
+            strip.action_slot = slots[0]
+    track.mute = True
+    return track

@@ -147,20 +147,29 @@ def _key_step(obj, arm):
     return steps.pop() if len(steps) == 1 and next(iter(steps)) >= 1 else 1
 
 
-def _gltf(path, fmt, clip_name, debug_attributes, step=1):
+def _clip_count(obj):
+    names = obj.data.get("artdef_clip_names")
+    return len(names) if names is not None else 1
+
+
+def _gltf(path, fmt, clip_name, debug_attributes, step=1, clips=1):
     options = dict(
         filepath=path, check_existing=False, export_format=fmt,
         use_selection=True, use_visible=False, use_active_collection=False,
         export_yup=True, export_apply=False,
         export_skins=True, export_def_bones=True, export_rest_position_armature=True,
-        export_armature_object_remove=True,       # validator: no NODE_SKINNED_MESH_NON_ROOT
+        # validator: no NODE_SKINNED_MESH_NON_ROOT.  Not with several clips: then
+        # Blender's NLA Tracks mode (5.0) also reads the tracks of armatures it does
+        # not export (e.g. the hidden source's) and fails on them.
+        export_armature_object_remove=clips == 1,
         export_influence_nb=4, export_all_influences=False,
         export_morph=True, export_morph_normal=True, export_morph_animation=True,
         export_animations=True, export_force_sampling=True, export_frame_range=False,
         export_frame_step=int(step),
         export_anim_slide_to_zero=False, export_negative_frame='SLIDE',
-        # the armature's and the shape keys' actions as ONE animation
-        export_animation_mode='ACTIVE_ACTIONS',
+        # the armature's and the shape keys' actions as ONE animation; several
+        # clips: one animation per NLA track name (armature + shape keys merged)
+        export_animation_mode='NLA_TRACKS' if clips > 1 else 'ACTIVE_ACTIONS',
         export_nla_strips_merged_animation_name=clip_name,
         export_vertex_color='ACTIVE' if debug_attributes else 'NONE',
         export_all_vertex_colors=bool(debug_attributes),
@@ -170,7 +179,7 @@ def _gltf(path, fmt, clip_name, debug_attributes, step=1):
     bpy.ops.export_scene.gltf(**compat.supported_options(bpy.ops.export_scene.gltf, options))
 
 
-def _fbx(path, debug_attributes, step=1):
+def _fbx(path, debug_attributes, step=1, clips=1):
     options = dict(
         filepath=path, check_existing=False, use_selection=True,
         object_types={'ARMATURE', 'MESH'},
@@ -179,7 +188,7 @@ def _fbx(path, debug_attributes, step=1):
         use_armature_deform_only=True,            # joints = deforming bones
         add_leaf_bones=False,
         primary_bone_axis='Y', secondary_bone_axis='X',
-        bake_anim=True, bake_anim_use_all_bones=True, bake_anim_use_nla_strips=False,
+        bake_anim=True, bake_anim_use_all_bones=True, bake_anim_use_nla_strips=clips > 1,
         bake_anim_use_all_actions=False,          # the active actions, one take
         bake_anim_force_startend_keying=True, bake_anim_step=float(step),
         bake_anim_simplify_factor=0.0,            # every frame, no key reduction
@@ -219,7 +228,7 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
         step = 1
         if _driven_bone_channels(arm):           # a Green's rig: bake its load sweep
             baked = _bake_driven_pose(context, arm)
-        else:
+        elif _clip_count(mesh_obj) == 1:
             step = _key_step(mesh_obj, arm)
             span = _action_range(mesh_obj, arm)
             if span is not None:                 # FBX bakes over the scene's range
@@ -228,16 +237,19 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
         copy, left_out = _clean_copy(context, mesh_obj, arm, debug_attributes)
         mesh_obj.name = saved_name + "_artdef_export_source"
         copy.name = saved_name                   # the exported node keeps the mesh's name
-        for o in view_layer.objects:
-            o.select_set(False)
-        copy.select_set(True)
-        arm.select_set(True)
-        view_layer.objects.active = copy
-        with context.temp_override(active_object=copy, object=copy, selected_objects=[copy, arm]):
+        clips = _clip_count(mesh_obj)
+        export_scene, export_layer = scene, view_layer
+        for o in export_layer.objects:
+            o.select_set(False, view_layer=export_layer)
+        copy.select_set(True, view_layer=export_layer)
+        arm.select_set(True, view_layer=export_layer)
+        export_layer.objects.active = copy
+        with context.temp_override(scene=export_scene, view_layer=export_layer, active_object=copy,
+                                   object=copy, selected_objects=[copy, arm]):
             if fmt == 'FBX':
-                _fbx(path, debug_attributes, step)
+                _fbx(path, debug_attributes, step, clips)
             else:
-                _gltf(path, fmt, clip_name, debug_attributes, step)
+                _gltf(path, fmt, clip_name, debug_attributes, step, clips)
     finally:
         if copy is not None:
             data = copy.data

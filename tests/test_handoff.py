@@ -646,3 +646,67 @@ def test_cli_fits_fbx_alembic_and_sequences(clean_scene, tmp_path, kind):
     gltf, binary = read_glb(out)
     assert len(gltf["meshes"]) == 1 and len(gltf["skins"]) == 1
     assert glb_times(gltf, binary) == pytest.approx([f / 24 for f in frames], abs=1e-4)
+
+
+def _play_clip(clip):
+    """Make clip ``clip`` (an NLA track name, as Blender's glTF importer stores a
+    file's animations) the active action of every object and shape-key set."""
+    for o in bpy.data.objects:
+        for id_data in (o, getattr(o.data, "shape_keys", None)):
+            ad = getattr(id_data, "animation_data", None) if id_data is not None else None
+            if ad is None:
+                continue
+            strips = [s for t in ad.nla_tracks if t.name == clip for s in t.strips]
+            if strips:
+                ad.use_nla = False
+                ad.action = strips[0].action
+                if hasattr(ad, "action_slot") and ad.action_slot is None and ad.action.slots:
+                    ad.action_slot = ad.action.slots[0]
+
+
+def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
+    """A character with two clips (Walk 1-21, Wave 1-11) in one glTF: one rig, one
+    animation per clip at the clip's own frames, each reproducing its source clip."""
+    obj, arm = build_character(last_frame=21)
+    walk = arm.animation_data.action
+    walk.name = "Walk"
+    wave = bpy.data.actions.new("Wave")
+    arm.animation_data.action = wave
+    for f in (1, 6, 11):
+        for i, n in enumerate(BONES):
+            arm.pose.bones[n].rotation_euler = (0.0, 0.0, 0.5 * math.sin(f / 3 + i))
+            arm.pose.bones[n].keyframe_insert("rotation_euler", frame=f)
+    arm.animation_data.action = walk
+    track = arm.animation_data.nla_tracks.new()
+    track.name = "Wave"
+    track.strips.new("Wave", 1, wave)
+    src = tmp_path / "two.glb"
+    assert bpy.ops.export_scene.gltf(filepath=str(src), export_format='GLB') == {'FINISHED'}
+    out = tmp_path / "rig.glb"
+    _ok(_run(["-m", "artdef_addon", "fit", str(src), "--links", "3", "--glb", str(out)],
+             cwd=tmp_path))
+    gltf, binary = read_glb(out)
+    assert len(gltf["meshes"]) == 1 and len(gltf["skins"]) == 1
+    anims = {a["name"]: a for a in gltf["animations"]}
+    assert sorted(anims) == ["Walk", "Wave"]
+    for name, last in (("Walk", 21), ("Wave", 11)):
+        times = [float(t) for s in anims[name]["samplers"]
+                 for t in accessor(gltf, binary, s["input"]).ravel()]
+        assert min(times) == pytest.approx(1 / 24, abs=1e-4)
+        assert max(times) == pytest.approx(last / 24, abs=1e-4)
+        paths = {c["target"]["path"] for c in anims[name]["channels"]}
+        assert {"rotation", "weights"} <= paths
+    refs = {}
+    for name, frames in (("Walk", [1, 6, 11, 16, 21]), ("Wave", [1, 6, 11])):
+        source = _skinned(_import(src))
+        _play_clip(name)
+        ref, ref_rest = world_positions(source, frames)
+        refs[name] = ref[1]                 # frame 6
+        rig_mesh = _skinned(_import(out))
+        _play_clip(name)
+        moved, rest = world_positions(rig_mesh, frames)
+        worst, rms = compare(ref, ref_rest, moved, rest)
+        print(f"clip {name}: max {100 * worst:.4f}%, rms {100 * rms:.4f}%")
+        assert worst < MAX_TOL and rms < RMS_TOL
+    # the two clips are different motions (the comparison switched clips)
+    assert np.abs(refs["Walk"] - refs["Wave"]).max() > 0.05
