@@ -375,6 +375,7 @@ def clear_rig(obj, scene=None):
             obj.vertex_groups.remove(vg)
     st.groups.clear()
     keys = mesh.shape_keys
+    _remove_clip_tracks(keys)
     if keys is not None:
         ad = keys.animation_data
         if ad is not None:
@@ -391,7 +392,6 @@ def clear_rig(obj, scene=None):
                 obj.shape_key_remove(kb)
         if st.made_basis and mesh.shape_keys is not None and len(mesh.shape_keys.key_blocks) == 1:
             obj.shape_key_clear()
-    _remove_clip_tracks(keys)
     key_action = st.key_action
     st.key_action = None  # the pointer itself counts as a user
     st.key_action_previous = None

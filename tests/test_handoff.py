@@ -22,7 +22,7 @@ from conftest import REPO_ROOT
 
 bpy = pytest.importorskip("bpy")
 
-from test_headless_gltf import accessor, read_glb  # noqa: E402  (GLB reader)
+from test_headless_gltf import _validate, accessor, read_glb  # noqa: E402  (GLB reader, validator)
 
 KEY_STEP = 5
 LAST_FRAME = 41                 # keys at 1, 6, ..., 41
@@ -215,6 +215,7 @@ def test_fit_animated_glb_exports_one_clean_rig(cli_fit, source_glb):
     # one animation, keyed at the source's times (no rest key at 0, same length)
     assert len(gltf["animations"]) == 1
     assert glb_times(gltf, binary) == glb_times(src, src_bin)
+    assert _validate(cli_fit["glb"]).returncode == 0      # Khronos validator: no error, no warning
     assert min(glb_times(src, src_bin)) == pytest.approx(1 / 24, abs=1e-4)
 
 
