@@ -329,6 +329,10 @@ def test_replay_keeps_the_source_frames(fitted_character, installed_addon):
 def test_export_rig_operator_writes_only_the_rig(fitted_character, tmp_path):
     scan_obj, source, arm = fitted_character
     assert "menu_export" in _menu_functions(bpy.types.TOPBAR_MT_file_export)
+    drawn = _draw()
+    for idname in ("artdef.export_rig", "artdef.finalize", "artdef.name_bones",
+                   "artdef.rotation_only"):
+        assert ("operator", idname, True) in drawn, idname       # panel buttons, enabled
     groups_before = [g.name for g in scan_obj.vertex_groups]
     selected_before = sorted(o.name for o in bpy.context.selected_objects)
     path = tmp_path / "rig.glb"
