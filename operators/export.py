@@ -247,7 +247,19 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
         with context.temp_override(scene=export_scene, view_layer=export_layer, active_object=copy,
                                    object=copy, selected_objects=[copy, arm]):
             if fmt == 'FBX':
-                _fbx(path, debug_attributes, step, clips)
+                muted = []
+                if clips > 1:  # the FBX exporter writes one take per NOT muted NLA strip
+                    for id_data in (arm, copy.data.shape_keys):
+                        ad = getattr(id_data, "animation_data", None) if id_data else None
+                        for track in (ad.nla_tracks if ad is not None else ()):
+                            if track.mute:
+                                track.mute = False
+                                muted.append(track)
+                try:
+                    _fbx(path, debug_attributes, step, clips)
+                finally:
+                    for track in muted:
+                        track.mute = True
             else:
                 _gltf(path, fmt, clip_name, debug_attributes, step, clips)
     finally:

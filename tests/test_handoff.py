@@ -688,8 +688,9 @@ def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
     src = tmp_path / "two.glb"
     assert bpy.ops.export_scene.gltf(filepath=str(src), export_format='GLB') == {'FINISHED'}
     out = tmp_path / "rig.glb"
-    _ok(_run(["-m", "artdef_addon", "fit", str(src), "--links", "3", "--glb", str(out)],
-             cwd=tmp_path))
+    fbx = tmp_path / "rig.fbx"
+    _ok(_run(["-m", "artdef_addon", "fit", str(src), "--links", "3", "--glb", str(out),
+              "--fbx", str(fbx)], cwd=tmp_path))
     gltf, binary = read_glb(out)
     assert len(gltf["meshes"]) == 1 and len(gltf["skins"]) == 1
     anims = {a["name"]: a for a in gltf["animations"]}
@@ -715,3 +716,25 @@ def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
         assert worst < MAX_TOL and rms < RMS_TOL
     # the two clips are different motions (the comparison switched clips)
     assert np.abs(refs["Walk"] - refs["Wave"]).max() > 0.05
+    # FBX: one take per clip (armature + shape keys); Blender's FBX exporter writes an
+    # NLA take from its strip's start, so the clip's frame 1 is the take's frame 0
+    objects = _import(fbx)
+    assert sorted(o.type for o in objects) == ['ARMATURE', 'MESH']
+    takes = sorted({a.name.split("|")[-1] for a in bpy.data.actions})
+    assert takes == ["Walk", "Wave"]
+    for name, frames in (("Walk", [1, 6, 11, 16, 21]), ("Wave", [1, 6, 11])):
+        objects = _import(fbx)
+        rig_mesh = _skinned(objects)
+        arm = rig_mesh.find_armature()
+        for id_data in (arm, rig_mesh.data.shape_keys):
+            owner = id_data.name
+            action = next(a for a in bpy.data.actions
+                          if a.name.endswith("|" + name) and a.name.startswith(owner))
+            id_data.animation_data.action = action
+        moved, rest = world_positions(rig_mesh, [f - 1 for f in frames])
+        source = _skinned(_import(src))
+        _play_clip(name)
+        ref, ref_rest = world_positions(source, frames)
+        worst, rms = compare(ref, ref_rest, moved, rest)
+        print(f"FBX clip {name}: max {100 * worst:.4f}%, rms {100 * rms:.4f}%")
+        assert worst < MAX_TOL and rms < RMS_TOL
