@@ -22,6 +22,9 @@ def _parser() -> argparse.ArgumentParser:
                                 "imports (.glb/.gltf/.fbx/.abc/.usd/.usdc/.usda/.usdz) or an "
                                 "OBJ/PLY sequence (folder, pattern or first file): sampled in "
                                 "Blender over the file's own frames (needs bpy)")
+    f.add_argument("--clip", action="append", default=[], metavar="FILE",
+                   help="another clip of the same mesh (animated file or sequence; repeatable): "
+                        "all clips are fitted as one rig with one action each")
     f.add_argument("--frames", metavar="START:END[:STEP]",
                    help="animated file or sequence: frames to sample (default: the file's keys)")
     f.add_argument("--links", required=True,
@@ -140,6 +143,13 @@ def _cmd_fit(a) -> int:
         frames = headless.parse_frames(a.frames)
     except ValueError as exc:
         raise _BadInput(str(exc)) from None
+    if a.clip and kind == "npz":
+        raise _BadInput("--clip applies to animated files and sequences, not to a .npz scan")
+    for clip in a.clip:
+        if headless.input_kind(clip) not in ("animated", "sequence"):
+            raise _BadInput(f"--clip {clip}: not an animated file or an OBJ/PLY sequence")
+        if headless.input_kind(clip) == "animated" and not os.path.exists(clip):
+            raise _BadInput(f"--clip {clip}: no such file")
     if frames is not None and kind == "npz":
         raise _BadInput("--frames applies to animated files and sequences, not to a .npz scan")
     if a.blend or a.glb or a.fbx or a.png or kind != "npz":
@@ -158,7 +168,7 @@ def _cmd_fit(a) -> int:
         if not os.path.exists(a.scan) and kind == "animated":
             raise _BadInput(f"{a.scan}: no such file")
         try:
-            prepared, sc = headless.scan_from_file(a.scan, frames)
+            prepared, sc = headless.scan_from_file(a.scan, frames, clips=a.clip)
         except RuntimeError as exc:
             raise _BadInput(str(exc).splitlines()[0] if str(exc) else "cannot read the file") from None
     t_load = time.perf_counter() - t0

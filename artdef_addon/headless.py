@@ -469,12 +469,14 @@ def fit_options(fit_kwargs: dict) -> dict:
     return kwargs
 
 
-def scan_from_file(path: str, frames=None):
+def scan_from_file(path: str, frames=None, clips=()):
     """Import an animated file or an OBJ/PLY sequence in a fresh scene and
     sample it into a tracked scan with ``bpy.ops.artdef.fields_from_file`` (the
     Fields from Animation code, over the file's own frames unless ``frames`` =
-    (start, end, step)).  Returns ``(mesh object holding the scan, Scan)``;
-    RuntimeError with the operator's one-line reason on failure."""
+    (start, end, step)).  ``clips``: more files or sequences of the same mesh,
+    each one clip: the scans are merged, so the fit makes one rig with one
+    action per clip (named after the files).  Returns ``(mesh object holding
+    the scan, Scan)``; RuntimeError with a one-line reason on failure."""
     bpy = _bpy()
     import importlib  # noqa: PLC0415
 
@@ -483,15 +485,27 @@ def scan_from_file(path: str, frames=None):
     kwargs = {"filepath": os.path.abspath(path)}
     if frames is not None:
         kwargs.update(frame_start=frames[0], frame_end=frames[1], frame_step=frames[2])
-    messages = []
-    try:
-        result = bpy.ops.artdef.fields_from_file(**kwargs)
-    except RuntimeError as ex:  # the operator's ERROR report
-        messages.append(str(ex).strip().splitlines()[-1].replace("Error: ", ""))
-        result = {'CANCELLED'}
-    if 'FINISHED' not in result:
-        raise RuntimeError(messages[0] if messages else f"cannot sample {path}")
-    mesh = bpy.context.view_layer.objects.active
+    objects = []
+    for i, p in enumerate([path, *clips]):
+        kw = dict(kwargs, filepath=os.path.abspath(p)) if i == 0 else {"filepath": os.path.abspath(p)}
+        messages = []
+        try:
+            result = bpy.ops.artdef.fields_from_file(**kw)
+        except RuntimeError as ex:  # the operator's ERROR report
+            messages.append(str(ex).strip().splitlines()[-1].replace("Error: ", ""))
+            result = {'CANCELLED'}
+        if 'FINISHED' not in result:
+            raise RuntimeError(messages[0] if messages else f"cannot sample {p}")
+        objects.append(bpy.context.view_layer.objects.active)
+    if clips:
+        animfile = importlib.import_module(module_name + ".operators.animfile")
+        names = [animfile.clip_name(p) for p in [path, *clips]]
+        try:
+            animfile.merge_clip_scans(objects, names)
+        except ValueError as ex:
+            raise RuntimeError(str(ex)) from None
+    mesh = objects[0]
+    bpy.context.view_layer.objects.active = mesh
     io = importlib.import_module(module_name + ".operators.io")
     return mesh, io.read_scan(mesh).scan
 

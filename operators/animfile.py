@@ -157,14 +157,12 @@ def sample_clips(context, obj, arm, actions):
     scans into the first copy: its fields are every clip's, in clip order, with
     ``artdef_field_clips``/``artdef_clip_names``/``artdef_clip_sampled`` for the
     replay (one action per clip).  Returns the scan object or None (reported)."""
-    from ..artdef_addon import scan as _scan
-    from . import io
     ad = arm.animation_data
     saved = (ad.action, getattr(ad, "action_slot", None), ad.use_nla)
-    copies, frames, clips, sampled, names = [], [], [], {}, []
+    copies, names = [], []
     try:
         ad.use_nla = False
-        for c, action in enumerate(actions):
+        for action in actions:
             compat.assign_action(arm, action)
             start, end, step = _even_range(compat.keyed_frames(action))
             context.view_layer.objects.active = obj
@@ -173,30 +171,9 @@ def sample_clips(context, obj, arm, actions):
                                                               frame_step=step)
             if 'FINISHED' not in result:
                 return None
-            copy = context.view_layer.objects.active
-            copies.append(copy)
-            kept = [int(f) for f in copy.data["artdef_frames"]]
-            frames += kept
-            clips += [c] * len(kept)
-            sampled[str(len(names))] = [int(f) for f in copy.data["artdef_sampled_frames"]]
+            copies.append(context.view_layer.objects.active)
             names.append(action.name)
-        first = copies[0]
-        scans = [io.read_scan(c).scan for c in copies]
-        merged = _scan.validate_scan(_scan.Scan(
-            scans[0].vertices, scans[0].faces,
-            displacements=np.concatenate([s.displacements for s in scans])))
-        io.write_scan(first.data, merged)
-        first.data["artdef_frames"] = frames
-        first.data["artdef_field_clips"] = clips
-        first.data["artdef_clip_names"] = names
-        first.data["artdef_clip_sampled"] = sampled
-        first.data["artdef_clip"] = names[0]
-        if "artdef_sampled_frames" in first.data:
-            del first.data["artdef_sampled_frames"]
-        for other in copies[1:]:
-            data = other.data
-            bpy.data.objects.remove(other, do_unlink=True)
-            bpy.data.meshes.remove(data)
+        first = merge_clip_scans(copies, names)
         copies = copies[:1]
         return first
     finally:
@@ -207,6 +184,61 @@ def sample_clips(context, obj, arm, actions):
                 data = other.data
                 bpy.data.objects.remove(other, do_unlink=True)
                 bpy.data.meshes.remove(data)
+
+
+def merge_clip_scans(objects, names):
+    """Merge the tracked scans on ``objects`` (one clip each, same mesh and rest)
+    into the first: its fields become every clip's, in order, with the replay's
+    per-clip timing (``artdef_field_clips``, ``artdef_clip_names``,
+    ``artdef_clip_sampled``).  The other objects are deleted.  ValueError (and
+    nothing changed) if a clip's mesh or rest shape differs from the first's."""
+    from ..artdef_addon import scan as _scan
+    from . import io
+    scans = [io.read_scan(o).scan for o in objects]
+    first = scans[0]
+    diag = float(np.linalg.norm(np.ptp(first.vertices, axis=0))) or 1.0
+    for name, sc in zip(names[1:], scans[1:]):
+        if sc.vertices.shape != first.vertices.shape or not np.array_equal(sc.faces, first.faces):
+            raise ValueError(f"clip {name!r} is not the same mesh as {names[0]!r} "
+                             f"({len(sc.vertices)} vertices, expected {len(first.vertices)})")
+        if np.abs(sc.vertices - first.vertices).max() > 1e-5 * diag:
+            raise ValueError(f"clip {name!r} has another rest shape than {names[0]!r}")
+    for o in objects:
+        if o.data.get("artdef_field_clips") is not None:
+            raise ValueError(f"'{o.name}' holds several clips already")
+    merged = _scan.validate_scan(_scan.Scan(
+        first.vertices, first.faces, displacements=np.concatenate([s.displacements for s in scans])))
+    frames, clips, sampled = [], [], {}
+    for c, o in enumerate(objects):
+        kept = [int(f) for f in o.data.get("artdef_frames", [])]
+        if len(kept) != scans[c].n_fields:  # no source frames: the clip's fields 1, 2, ...
+            kept = list(range(1, scans[c].n_fields + 1))
+        frames += kept
+        clips += [c] * len(kept)
+        sampled[str(c)] = [int(f) for f in o.data.get("artdef_sampled_frames", kept)]
+    target = objects[0]
+    io.write_scan(target.data, merged)
+    target.data["artdef_frames"] = frames
+    target.data["artdef_field_clips"] = clips
+    target.data["artdef_clip_names"] = list(names)
+    target.data["artdef_clip_sampled"] = sampled
+    target.data["artdef_clip"] = names[0]
+    if "artdef_sampled_frames" in target.data:
+        del target.data["artdef_sampled_frames"]
+    for other in objects[1:]:
+        data = other.data
+        bpy.data.objects.remove(other, do_unlink=True)
+        if data.users == 0:
+            bpy.data.meshes.remove(data)
+    return target
+
+
+def clip_name(path):
+    """A clip's name from its file, folder or pattern: ``walk/``, ``walk_*.obj``,
+    ``walk.glb`` -> ``walk``."""
+    base = os.path.basename(os.path.normpath(path))
+    stem = os.path.splitext(base)[0] if not os.path.isdir(path) else base
+    return stem.split("*")[0].rstrip("_-. ") or stem or "clip"
 
 
 def import_animated(context, path):

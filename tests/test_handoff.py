@@ -738,3 +738,44 @@ def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
         worst, rms = compare(ref, ref_rest, moved, rest)
         print(f"FBX clip {name}: max {100 * worst:.4f}%, rms {100 * rms:.4f}%")
         assert worst < MAX_TOL and rms < RMS_TOL
+
+
+def test_several_sequences_fit_one_rig_with_one_clip_each(clean_scene, tmp_path):
+    """``fit walk/ --clip wave/``: two OBJ sequences of one mesh (same rest file),
+    one rig, one animation per sequence at the files' numbers."""
+    obj, arm = build_character(last_frame=21)
+    scene = bpy.context.scene
+    polys = [tuple(p.vertices) for p in obj.data.polygons]
+    rest = [tuple(v.co) for v in obj.data.vertices]
+    numbers = {"walk": (5, 10, 15, 20), "wave": (3, 6, 9)}
+    for name, frames in numbers.items():
+        folder = tmp_path / name
+        folder.mkdir()
+        _write_obj(folder / "pose_000.obj", rest, polys)
+        for f in frames:
+            scene.frame_set(f if name == "walk" else 21 - f)
+            ev = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+            _write_obj(folder / f"pose_{f:03d}.obj", [tuple(v.co) for v in ev.to_mesh().vertices],
+                       polys)
+            ev.to_mesh_clear()
+    out = tmp_path / "rig.glb"
+    _ok(_run(["-m", "artdef_addon", "fit", str(tmp_path / "walk"), "--clip", str(tmp_path / "wave"),
+              "--links", "3", "--glb", str(out)], cwd=tmp_path))
+    gltf, binary = read_glb(out)
+    assert len(gltf["meshes"]) == 1 and len(gltf["skins"]) == 1
+    anims = {a["name"]: a for a in gltf["animations"]}
+    assert sorted(anims) == ["walk", "wave"]
+    for name, frames in numbers.items():
+        times = sorted({round(float(t) * 24, 3) for s in anims[name]["samplers"]
+                        for t in accessor(gltf, binary, s["input"]).ravel()})
+        assert times[0] == 0 and times[-1] == frames[-1]
+    # a clip of another mesh: one line, nothing written
+    other = tmp_path / "other"
+    other.mkdir()
+    _write_obj(other / "pose_000.obj", [(x, y, 2 * z) for x, y, z in rest], polys)
+    _write_obj(other / "pose_001.obj", [(x + 0.1, y, 2 * z) for x, y, z in rest], polys)
+    bad = tmp_path / "bad.glb"
+    proc = _run(["-m", "artdef_addon", "fit", str(tmp_path / "walk"), "--clip", str(other),
+                 "--links", "3", "--glb", str(bad)], cwd=tmp_path)
+    assert proc.returncode == 2 and "another rest shape" in proc.stderr, proc.stderr[-1500:]
+    assert not bad.exists()
