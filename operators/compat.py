@@ -189,3 +189,14 @@ def nla_clip_track(id_data, name, action, start):
             strip.action_slot = slots[0]
     track.mute = True
     return track
+
+
+# --------------------------------------------------------------------------
+# Process exit
+# --------------------------------------------------------------------------
+# The bpy 4.5 module (pip ``bpy==4.5.15``) can deadlock at interpreter exit,
+# in C++ static destructors, after a glTF import or export (the command line's
+# outputs were all written, then the process waited forever).  5.0 and later
+# exit normally.  ``python -m artdef_addon`` therefore ends with
+# ``os._exit`` after the Python exit handlers when bpy was loaded
+# (artdef_addon/__main__.py: the core cannot import this module).
