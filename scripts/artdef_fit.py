@@ -32,4 +32,9 @@ def run(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(run())
+    code = run()
+    if "bpy" in sys.modules and not getattr(sys.modules["bpy"].app, "binary_path", ""):
+        # the bpy module (not inside Blender): it can hang at exit on 4.5
+        from artdef_addon.headless import exit_process
+        exit_process(code)
+    sys.exit(code)
