@@ -201,3 +201,16 @@ def nla_clip_track(id_data, name, action, start):
 # ``os._exit`` after the Python exit handlers when the bpy module was loaded
 # (artdef_addon/headless.exit_process, used by artdef_addon/__main__.py and
 # scripts/artdef_fit.py: the core cannot import this module).
+
+
+# --------------------------------------------------------------------------
+# Custom properties
+# --------------------------------------------------------------------------
+# 5.0 keeps the properties registered with bpy.props (our ``Object.artdef``
+# group) apart from user custom properties; in 4.5 ``ID.keys()`` lists them
+# too (``'artdef'``).  ``custom_keys`` gives the user's custom properties only.
+
+def custom_keys(id_data):
+    """Names of ``id_data``'s custom properties, without add-on-registered ones."""
+    registered = id_data.bl_rna.properties
+    return [k for k in id_data.keys() if k not in registered]
