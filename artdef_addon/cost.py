@@ -51,7 +51,7 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
              budget: float = DEFAULT_BUDGET, units: int | None = None) -> Estimate:
     """Estimate a fit; ``reduced`` says whether the full method would exceed ``budget`` bytes."""
     full = full_memory(triangles, fields, vertices)
-    reduced = full > budget
+    reduced = full > budget or faster_reduced(triangles, fields, budget)
     u = triangles if not reduced else (units or min(triangles, reduced_units(budget, fields)))
     pairs = u * (u - 1) / 2
     linkages = 1 if strategy == "summed" else fields
@@ -70,6 +70,23 @@ MAX_UNITS = 1000
 MIN_UNITS = 500
 #: U²·P budget of the reduced method's pairwise stage: with many fields it uses fewer patches
 PAIR_FIELD_WORK = 2.0e7
+
+
+#: the reduced method is also used, for speed, when the scan has more than this many times the
+#: patches it would use: the pairwise stage then costs (T/U)² = 4× or more than on patches, and on
+#: the shared rigged sets (CesiumMan 4.7k, wolf 10k, cheburashka 13k, dembones_bone 1.5k × 400
+#: fields) the patches give the same articulation error and ARI at 2–6× less whole-fit time
+#: (benchmarks/results/compare_dembones.md)
+SPEED_FACTOR = 2.0
+
+
+def faster_reduced(triangles: int, fields: int, budget: float = DEFAULT_BUDGET) -> bool:
+    """Whether the reduced method is chosen for speed (not memory): more than
+    :data:`SPEED_FACTOR` × :func:`reduced_units` triangles. An unbounded ``budget`` (the reduced
+    method switched off) never chooses it."""
+    if budget == float("inf"):
+        return False
+    return triangles > SPEED_FACTOR * reduced_units(budget, fields)
 
 
 def reduced_units(budget: float = DEFAULT_BUDGET, fields: int | None = None) -> int:
