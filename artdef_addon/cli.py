@@ -1,6 +1,7 @@
 """Command line: ``python -m artdef_addon fit|sample|info ...``.
 
-Exit codes: 0 success, 2 bad input (one line on stderr, no output written), 1 other failure.
+Exit codes: 0 success, 2 bad input (one line on stderr, nothing written), 1 failure while working
+or writing (one line, earlier files intact), 130 interrupted. See docs/cli.md.
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m artdef_addon",
+    p = _Parser(prog="python -m artdef_addon",
                                 description="Articulated deformation from displacement fields "
                                             "(Lang, Pai & Seidel, GI 2003).")
     sub = p.add_subparsers(dest="command", required=True)
@@ -60,46 +61,68 @@ class _BadInput(Exception):
     pass
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``artdef: error: ...``, exit 2 (no usage block)."""
+
+    def error(self, message):
+        raise _BadInput(message)
+
+
 def _fail(msg: str, code: int = 2) -> int:
-    print(f"artdef: error: {msg}", file=sys.stderr)
+    print(f"artdef: error: {msg}", file=sys.stderr, flush=True)
     return code
 
 
+def _check(rng, name, value):
+    from .files import OptionError
+    try:
+        return rng.check(name, value)
+    except OptionError as exc:
+        raise _BadInput(str(exc)) from None
+
+
 def _cmd_sample(a) -> int:
-    from . import samples, scan as S
+    from . import files, samples
+    R = files.RANGES
+    files.check_outputs([], {"-o": a.output})
+    if a.name not in samples.NAMES:
+        raise _BadInput(f"unknown sample {a.name!r}; choose from {', '.join(samples.NAMES)}")
     kw = {}
     if a.fields is not None:
-        kw["n_fields"] = a.fields
+        if a.name == "greens_rod":
+            raise _BadInput("--fields does not apply to greens_rod (its fields are its load columns)")
+        kw["n_fields"] = _check(R["fields"], "--fields", a.fields)
     if a.seed is not None:
-        kw["seed"] = a.seed
+        if a.name == "greens_rod":
+            raise _BadInput("--seed does not apply to greens_rod (it is not random)")
+        kw["seed"] = _check(R["seed"], "--seed", a.seed)
+    noise = _check(R["noise"], "--noise", a.noise)
     if a.name == "branching":
-        kw.update(noise=a.noise, bulges=a.bulges, disconnected=a.disconnected)
+        kw.update(noise=noise, bulges=a.bulges, disconnected=a.disconnected)
+    elif noise or a.bulges or a.disconnected:
+        raise _BadInput("--noise, --bulges and --disconnected apply to the branching sample only")
     try:
         sc = samples.make(a.name, **kw)
     except (ValueError, TypeError) as exc:
         raise _BadInput(str(exc)) from None
-    S.save_scan(a.output, sc)
+    from .scan import validate_scan
+    validate_scan(sc)       # a sample is written only if it can be fitted
+    from .scan import save_scan
+    save_scan(a.output, sc)
     print(f"wrote {a.output}: {a.name}, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields ({sc.kind})")
     return 0
 
 
 def _cmd_info(a) -> int:
-    from . import scan as S
-    try:
-        with np.load(a.path, allow_pickle=False) as z:
-            is_result = "face_labels" in z.files
-    except (OSError, ValueError, EOFError) as exc:
-        raise _BadInput(f"cannot read {a.path}: {exc}") from None
-    if is_result:
-        from . import fit as F
+    from . import files
+    d = files.read_npz(a.path)          # BadFile: one line naming the file
+    if "face_labels" in d:
+        res = files.read_result(a.path)
         print(f"{a.path}: fit result")
-        print(F.load_result(a.path).summary())
+        print(res.summary())
         return 0
-    try:
-        sc = S.load_scan(a.path)
-    except S.ScanError as exc:
-        raise _BadInput(str(exc)) from None
+    sc = files.read_scan(a.path)
     print(f"{a.path}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields, {sc.n_loads} loads, "
           f"{0 if sc.support_vertices is None else len(sc.support_vertices)} support vertices, "
@@ -111,66 +134,76 @@ def _cmd_info(a) -> int:
 
 
 def _cmd_fit(a) -> int:
-    from . import fit as F, scan as S
+    from . import files, fit as F
+    R = files.RANGES
     t0 = time.perf_counter()
-    for path in (a.output, a.blend, a.glb, a.png):
-        if path and os.path.isdir(path):
-            raise _BadInput(f"output path is a directory: {path}")
-    if a.blend or a.glb or a.png:
+    blender = bool(a.blend or a.glb or a.png)
+    # every output checked before any work: writable directory, not the input, not each other
+    files.check_outputs([a.scan], {"-o": a.output, "--blend": a.blend, "--glb": a.glb, "--png": a.png})
+    auto = str(a.links).strip().lower() == "auto"
+    try:
+        links = None if auto else R["links"].check("--links", a.links)
+    except files.OptionError as exc:
+        raise _BadInput(f"{exc} (or 'auto')") from None
+    max_links = _check(R["max_links"], "--max-links", a.max_links)
+    if a.p_max is not None:
+        _check(R["p_max"], "--p-max", a.p_max)
+    _check(R["memory_budget"], "--memory-budget", a.memory_budget)
+    if blender and a.strategy != "auto":
+        raise _BadInput("--strategy cannot be combined with --blend/--glb/--png: the Blender fit uses "
+                        "strategy auto")
+    if blender:
         from . import headless
         try:
             headless.require_bpy()
         except RuntimeError as exc:
             raise _BadInput(str(exc)) from None
-    try:
-        sc = S.load_scan(a.scan)
-    except S.ScanError as exc:
-        raise _BadInput(str(exc)) from None
+    sc = files.read_scan(a.scan)        # BadFile: one line naming the file and the problem
     t_load = time.perf_counter() - t0
-    if (a.blend or a.glb or a.png) and a.strategy != "auto":
-        raise _BadInput("--strategy cannot be combined with --blend/--glb/--png: the Blender fit uses "
-                        "strategy auto")
-    auto = str(a.links).strip().lower() == "auto"
-    if not auto:
-        try:
-            links = int(a.links)
-        except ValueError:
-            raise _BadInput(f"--links must be a whole number or 'auto', got {a.links!r}") from None
-    try:
-        t_fit = time.perf_counter()
-        reduce = {"auto": None, "on": True, "off": False}[a.reduce]
-        seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
-        if not a.quiet:
-            print(seg.estimate.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
-        t_auto = 0.0
-        if auto:
-            from .linkcount import choose_links
-            t0 = time.perf_counter()
-            choice = choose_links(seg, max_links=a.max_links)
-            links = choice.links
-            t_auto = time.perf_counter() - t0
-        result = choice.reusable(a.mode, a.motion, a.skin) if auto else None
-        if result is not None:      # the chooser fitted this count already
-            result.p_max = a.p_max
-        else:
-            result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
-                           strategy=a.strategy, skin=a.skin)
-    except S.ScanError as exc:
-        raise _BadInput(str(exc)) from None
+    usable = sc.n_faces - len(sc.degenerate_faces)
+    why = f" (the scan's {usable} non-degenerate triangles)"
+    if auto:
+        max_links = _check(R["max_links"].within(usable, why), "--max-links", max_links)
+    else:
+        links = _check(R["links"].within(usable, why), "--links", links)
+    t_fit = time.perf_counter()
+    reduce = {"auto": None, "on": True, "off": False}[a.reduce]
+    seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
+    if not a.quiet:
+        print(seg.estimate.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
+    t_auto = 0.0
+    if auto:
+        from .linkcount import choose_links
+        t0 = time.perf_counter()
+        choice = choose_links(seg, max_links=max_links)
+        links = choice.links
+        t_auto = time.perf_counter() - t0
+    result = choice.reusable(a.mode, a.motion, a.skin) if auto else None
+    if result is not None:      # the chooser fitted this count already
+        result.p_max = a.p_max
+    else:
+        result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
+                       strategy=a.strategy, skin=a.skin)
     timings = {"load": t_load, **result.timings}
     if auto:
         timings["links auto"] = t_auto
     timings["total"] = time.perf_counter() - t_fit
     result.timings = timings
-    if a.output:
-        F.save_result(a.output, result)
-    written = {}
-    if a.blend or a.glb or a.png:
-        from . import headless
-        kwargs = dict(links=int(links), mode=a.mode.upper(), motion=a.motion.upper(),
-                      p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
-                      memory_budget=float(a.memory_budget))
-        written = headless.build_outputs(a.scan, kwargs, a.blend, a.glb, a.png)
+    # all outputs are written to temporaries and renamed into place together at the end: a failure
+    # or Ctrl-C anywhere before leaves every earlier file byte-identical and no partial file
+    with files.Outputs() as out:
+        if a.output:
+            out.write_npz(a.output, F.result_arrays(result), compress=True)
+        if blender:
+            from . import headless
+            if not a.quiet:
+                print("building the Blender outputs", flush=True)
+            kwargs = dict(links=int(links), mode=a.mode.upper(), motion=a.motion.upper(),
+                          p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
+                          memory_budget=float(a.memory_budget))
+            headless.build_outputs(a.scan, kwargs, a.blend and out.path(a.blend),
+                                   a.glb and out.path(a.glb), a.png and out.path(a.png))
+        out.commit()
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
@@ -181,17 +214,35 @@ def _cmd_fit(a) -> int:
             f = sc.fields()
             expl = 100.0 * (1.0 - result.rms_articulation ** 2 / max(np.mean(np.sum(f * f, -1)), 1e-300))
             print(f"articulation explains {expl:.2f}% of the fields' energy")
-        for path in (a.output, *written.values()):
+        for path in (a.output, a.blend, a.glb, a.png):
             if path:
                 print(f"wrote {path}")
     return 0
 
 
 def main(argv=None) -> int:
-    a = _parser().parse_args(argv)
+    """Run the command line; returns the exit code (README, "Exit codes and guarantees"):
+    0 success, 2 bad input or unusable output path (one line, nothing written), 1 a failure while
+    working or writing (one line, earlier files intact), 130 interrupted (Ctrl-C; nothing written)."""
+    from .files import OptionError, OutputError
+    from .scan import ScanError
     try:
+        a = _parser().parse_args(argv)
         return {"fit": _cmd_fit, "sample": _cmd_sample, "info": _cmd_info}[a.command](a)
-    except _BadInput as exc:
-        return _fail(str(exc).splitlines()[0] if str(exc) else "bad input")
+    except (_BadInput, ScanError, OutputError, OptionError) as exc:
+        return _fail(" ".join(str(exc).split()) or "bad input")
     except KeyboardInterrupt:
-        return _fail("interrupted", 130)
+        return _fail("interrupted; no file was written or changed", 130)
+    except SystemExit as exc:       # --help / --version
+        return exc.code if isinstance(exc.code, int) else 0
+    except OSError as exc:
+        where = f" {exc.filename}" if exc.filename else ""
+        return _fail(f"cannot write{where}: {exc.strerror or exc}; earlier files are unchanged", 1)
+    except MemoryError:
+        return _fail("out of memory; earlier files are unchanged", 1)
+    except Exception as exc:
+        if os.environ.get("ARTDEF_TRACEBACK"):
+            raise
+        msg = " ".join(str(exc).split())
+        return _fail(f"internal error: {type(exc).__name__}: {msg} (earlier files are unchanged; "
+                     "set ARTDEF_TRACEBACK=1 for the traceback)", 1)

@@ -599,7 +599,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
             self.report({'INFO'}, f"ArtDef: {note}")
         self.report({'INFO'}, f"'{obj.name}': {model.n_links} links, rms articulation "
                               f"{model.rms_articulation:.4g} "
-                              f"({model.articulation_error_percent:.2f}%), rms total "
+                              f"({model.error_percent_text()}), rms total "
                               f"{model.rms_total:.4g} ({job.seconds:.2f} s)"
                               + ("; reduced method on patches" if job.reduced else "")
                               + (f"; {obj.artdef.fit_replay}" if obj.artdef.fit_replay else ""))
@@ -619,7 +619,8 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         st.fit_seconds = job.seconds
         timings = getattr(model, "timings", None) or getattr(job.result, "timings", None) or {}
         st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
-        st.fit_articulation_percent = float(model.articulation_error_percent)
+        e = float(model.articulation_error_percent)
+        st.fit_articulation_percent = e if e == e else -1.0   # −1: undefined (one field), shown "n/a"
         res = job.vertex_residual
         st.fit_residual_max = float(res.max()) if len(res) else 0.0
         st.fit_residual_mean = float(res.mean()) if len(res) else 0.0
