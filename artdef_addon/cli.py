@@ -57,6 +57,10 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+#: outputs renamed into place by this run (so a late Ctrl-C is reported truthfully)
+_committed: list = []
+
+
 class _BadInput(Exception):
     pass
 
@@ -203,7 +207,8 @@ def _cmd_fit(a) -> int:
                           memory_budget=float(a.memory_budget))
             headless.build_outputs(a.scan, kwargs, a.blend and out.path(a.blend),
                                    a.glb and out.path(a.glb), a.png and out.path(a.png))
-        out.commit()
+        written = out.commit()
+    _committed.extend(written)
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
@@ -226,12 +231,15 @@ def main(argv=None) -> int:
     working or writing (one line, earlier files intact), 130 interrupted (Ctrl-C; nothing written)."""
     from .files import OptionError, OutputError
     from .scan import ScanError
+    _committed.clear()
     try:
         a = _parser().parse_args(argv)
         return {"fit": _cmd_fit, "sample": _cmd_sample, "info": _cmd_info}[a.command](a)
     except (_BadInput, ScanError, OutputError, OptionError) as exc:
         return _fail(" ".join(str(exc).split()) or "bad input")
     except KeyboardInterrupt:
+        if _committed:
+            return _fail(f"interrupted after writing {', '.join(_committed)}", 130)
         return _fail("interrupted; no file was written or changed", 130)
     except SystemExit as exc:       # --help / --version
         return exc.code if isinstance(exc.code, int) else 0

@@ -360,7 +360,9 @@ def check_outputs(inputs, outputs: dict) -> None:
             raise OutputError(f"{opt} {p}: is a directory")
         if os.path.exists(p) and not os.path.isfile(p):
             raise OutputError(f"{opt} {p}: exists and is not a regular file")
-        d = os.path.dirname(os.path.abspath(p))
+        # the directory as the OS resolves it (no lexical normalising: "missing/../in.npz" is not
+        # a path to "in.npz" for the OS, and must not become one here)
+        d = os.path.dirname(p) or "."
         if not os.path.isdir(d):
             raise OutputError(f"{opt} {p}: the directory {d} does not exist")
         if not os.access(d, os.W_OK | os.X_OK):
@@ -388,8 +390,8 @@ class Outputs:
         return self
 
     def path(self, final) -> str:
-        final = os.path.abspath(os.fspath(final))
-        tmpdir = tempfile.mkdtemp(prefix=".artdef-tmp-", dir=os.path.dirname(final))
+        final = os.fspath(final)
+        tmpdir = tempfile.mkdtemp(prefix=".artdef-tmp-", dir=os.path.dirname(final) or ".")
         tmp = os.path.join(tmpdir, os.path.basename(final))
         self._pending.append((tmp, final, tmpdir))
         return tmp
@@ -416,7 +418,7 @@ class Outputs:
             for tmp, final, tmpdir in self._pending:
                 os.replace(tmp, final)
                 done.append(final)
-                _fsync_dir(os.path.dirname(final))
+                _fsync_dir(os.path.dirname(final) or ".")
         finally:
             self._cleanup()
             _release_sigint(old)

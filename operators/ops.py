@@ -194,6 +194,10 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
             self.report({'ERROR'}, f"Could not read '{self.filepath}': {err}")
             return {'CANCELLED'}
         loads = 0 if scan.load_vertices is None else len(scan.load_vertices)
+        repeated = int(np.count_nonzero(io.repeated_vertex_faces(scan.faces)))
+        if repeated:
+            self.report({'WARNING'}, f"{repeated} triangle(s) use a vertex twice (zero area): left out "
+                                     f"of the mesh; the fit gives them no weight")
         self.report({'INFO'}, f"Imported '{obj.name}': {len(scan.vertices)} vertices, "
                               f"{scan.n_fields} {scan.kind} fields, {loads} load points "
                               f"({time.perf_counter() - t0:.2f} s)")
