@@ -33,6 +33,11 @@ _KNOWN_KEYS = {"vertices", "faces", "greens", "displacements", "load_vertices",
                "support_vertices", "probe_load", "format_version"}
 
 
+#: largest coordinate or displacement magnitude accepted: squares and sums of squares of larger
+#: values overflow float64 (the fit's distances and moments), giving NaN instead of a result
+MAX_MAGNITUDE = 1e100
+
+
 class ScanError(ValueError):
     """Bad scan input; the message names the problem."""
 
@@ -103,13 +108,17 @@ def _as_float(name, a, ndim):
     if not np.all(np.isfinite(a)):
         bad = int(np.count_nonzero(~np.isfinite(a)))
         raise ScanError(f"{name} contains {bad} NaN or infinite values")
+    if a.size and np.abs(a).max() > MAX_MAGNITUDE:
+        raise ScanError(f"{name} has values up to {np.abs(a).max():.3g}; beyond {MAX_MAGNITUDE:g} the fit's "
+                        f"squared distances overflow: rescale the scan")
     return a
 
 
 def _as_index(name, a, n, ndim=1):
     a = np.asarray(a)
     if a.dtype.kind not in "iu":
-        if a.dtype.kind == "f" and a.size and np.all(np.isfinite(a)) and np.all(a == np.round(a)):
+        if (a.dtype.kind == "f" and a.size and np.all(np.isfinite(a)) and np.all(a == np.round(a))
+                and np.abs(a).max() < 2 ** 53):
             a = a.astype(np.int64)
         elif a.size == 0:
             a = a.astype(np.int64)
