@@ -241,6 +241,12 @@ def main(argv=None) -> int:
         if _committed:
             return _fail(f"interrupted after writing {', '.join(_committed)}", 130)
         return _fail("interrupted; no file was written or changed", 130)
+    except BrokenPipeError:         # stdout closed by the reader (| head): not an error of ours
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141
     except SystemExit as exc:       # --help / --version
         return exc.code if isinstance(exc.code, int) else 0
     except OSError as exc:

@@ -148,6 +148,8 @@ def _sniff(path) -> None:
         raise BadFile(f"{name}: no such file")
     if os.path.isdir(path):
         raise BadFile(f"{name}: is a directory, not a .npz file")
+    if not os.path.isfile(path):
+        raise BadFile(f"{name}: not a regular file")
     try:
         with open(path, "rb") as f:
             head = f.read(8)
@@ -159,12 +161,9 @@ def _sniff(path) -> None:
         raise BadFile(f"{name}: a single .npy array saved under another name, not a .npz archive "
                       "(save with numpy.savez)")
     if not head.startswith(_ZIP_MAGIC):
-        try:
-            head.decode("ascii")
-            kind = "a text file"
-        except UnicodeDecodeError:
-            kind = "not a zip archive"
-        raise BadFile(f"{name}: {kind}, not a .npz archive")
+        printable = all(32 <= b < 127 or b in b"\t\r\n" for b in head)
+        raise BadFile(f"{name}: " + ("a text file, not a .npz archive" if printable
+                                     else "not a .npz archive (it does not start like a zip file)"))
 
 
 def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, name: str) -> np.ndarray:
@@ -191,10 +190,15 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, name: str) -> np.nd
                           f"({need:,} bytes) but holds {max(have, 0):,} bytes: truncated or damaged")
         if count == 0:
             return np.zeros(shape, dtype=dtype)
-        data = fp.read(need)
-        if len(data) != need:
-            raise BadFile(f"{name}: member '{key}' is truncated")
-        arr = np.frombuffer(data, dtype=dtype, count=count)
+        arr = np.empty(count, dtype=dtype)          # allocated only now, its size checked
+        view = memoryview(arr).cast("B")
+        got = 0
+        while got < need:     # 1 MB reads: as fast as np.load (64 MB reads were 2-3x slower)
+            data = fp.read(min(1 << 20, need - got))
+            if not data:
+                raise BadFile(f"{name}: member '{key}' is truncated")
+            view[got:got + len(data)] = data
+            got += len(data)
         if fortran:
             return arr.reshape(shape[::-1]).transpose()
         return arr.reshape(shape)
@@ -254,6 +258,10 @@ def read_scan(path):
             found = ", ".join(sorted(d)) or "nothing"
             raise BadFile(f"{name}: no '{key}' array (the file holds: {found})")
     probe = _numeric_scalar(name, d, "probe_load", 1.0)
+    version = _numeric_scalar(name, d, "format_version", float(S.FORMAT_VERSION))
+    if version > S.FORMAT_VERSION:
+        raise BadFile(f"{name}: scan format version {version:g} is newer than this artdef reads "
+                      f"({S.FORMAT_VERSION})")
     try:
         return S.validate_scan(S.Scan(
             vertices=d["vertices"], faces=d["faces"],
