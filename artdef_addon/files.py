@@ -408,7 +408,7 @@ class Outputs:
         """Write ``arrays`` as ``.npz`` with exactly the name ``final`` (on commit)."""
         tmp = self.path(final)
         with open(tmp, "wb") as f:
-            (np.savez_compressed if compress else np.savez)(f, **arrays)
+            _savez(f, arrays, compress)
         return tmp
 
     def commit(self) -> list:
@@ -442,6 +442,17 @@ class Outputs:
     def __exit__(self, *exc):
         self._cleanup()
         return False
+
+
+def _savez(f, arrays: dict, compress: bool) -> None:
+    """``np.savez`` into the open file ``f``, with the archive closed on any exception (numpy 1.26's
+    savez leaves its ZipFile to the garbage collector, which then printed an "Exception ignored"
+    traceback after a failed write, e.g. on a full disk)."""
+    mode = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(f, mode="w", compression=mode, allowZip64=True) as zf:
+        for key, value in arrays.items():
+            with zf.open(key + ".npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
 def _fsync_dir(d):
