@@ -13,6 +13,11 @@ import time
 import numpy as np
 
 
+#: --links auto tries up to this many links unless --max-links says otherwise (then clamped to the
+#: scan's triangles; an explicit --max-links above them is refused)
+DEFAULT_MAX_LINKS = 30
+
+
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(prog="python -m artdef_addon",
                                 description="Articulated deformation from displacement fields "
@@ -28,7 +33,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="link motion: motion centroid (paper) or least squares (comparison)")
     f.add_argument("--p-max", type=float, default=None,
                    help="strain hardening limit (> 1, in probe loads); off by default")
-    f.add_argument("--max-links", type=int, default=30, help="upper bound for --links auto")
+    f.add_argument("--max-links", type=int, default=None,
+                   help=f"upper bound for --links auto (default {DEFAULT_MAX_LINKS}, at most the triangles)")
     f.add_argument("--memory-budget", type=float, default=2.0,
                    help="GB; above it the fit switches to the reduced method on patches")
     f.add_argument("--reduce", choices=("auto", "on", "off"), default="auto",
@@ -149,7 +155,7 @@ def _cmd_fit(a) -> int:
         links = None if auto else R["links"].check("--links", a.links)
     except files.OptionError as exc:
         raise _BadInput(f"{exc} (or 'auto')") from None
-    max_links = _check(R["max_links"], "--max-links", a.max_links)
+    max_links = None if a.max_links is None else _check(R["max_links"], "--max-links", a.max_links)
     if a.p_max is not None:
         _check(R["p_max"], "--p-max", a.p_max)
     _check(R["memory_budget"], "--memory-budget", a.memory_budget)
@@ -166,7 +172,9 @@ def _cmd_fit(a) -> int:
     t_load = time.perf_counter() - t0
     usable = sc.n_faces - len(sc.degenerate_faces)
     why = f" (the scan's {usable} non-degenerate triangles)"
-    if auto:
+    if auto and max_links is None:
+        max_links = min(DEFAULT_MAX_LINKS, usable)
+    elif auto:
         max_links = _check(R["max_links"].within(usable, why), "--max-links", max_links)
     else:
         links = _check(R["links"].within(usable, why), "--links", links)

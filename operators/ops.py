@@ -14,6 +14,7 @@ from bpy_extras.io_utils import ImportHelper
 from ..artdef_addon import cost as _cost
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
+from ..artdef_addon.files import MAX_AUTO_LINKS
 from . import fitquality, io, rig
 from .props import (BUDGET_MIN, BUDGET_SOFT_MIN, MEMORY_BUDGET_DESCRIPTION, MODE_ITEMS,
                     MOTION_ITEMS, REDUCE_ITEMS, SKIN_ITEMS)
@@ -493,7 +494,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
                              description="Choose the number of links from the data (where the "
                                          "articulation error stops dropping), up to Max Links; "
                                          "the reason is reported. Turn off to set Links yourself")
-    max_links: IntProperty(name="Max Links", default=30, min=1, soft_max=64,
+    max_links: IntProperty(name="Max Links", default=30, min=1, max=MAX_AUTO_LINKS, soft_max=64,
                            description="Auto Links: the largest link count tried")
     skin: EnumProperty(name="Skin", items=SKIN_ITEMS, default='AUTO',
                        description="Skin weights: seam-blended, or refined per vertex by least "

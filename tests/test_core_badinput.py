@@ -342,9 +342,13 @@ def test_max_links_is_bounded_by_the_triangles(tmp_path, capsys, monkeypatch):
     f = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
     p = tmp_path / "tiny.npz"
     S.save_scan(p, S.Scan(v, f, displacements=np.ones((2, 6, 3)) * [[[0.1]], [[0.2]]]))
-    _no_fit(monkeypatch)
+    monkeypatch.setattr(F, "Segmenter", lambda *a, **k: pytest.fail("fitted despite a bad --max-links"))
     code, _, err = run(capsys, "fit", p, "--links", "auto", "--max-links", "50")
     assert code == 2 and "--max-links must be at most 4 (the scan's 4 non-degenerate triangles)" in err[0]
+    monkeypatch.undo()
+    # the default (30) is clamped to the triangles, not refused
+    code, out, err = run(capsys, "fit", p, "--links", "auto", "-o", tmp_path / "r.npz")
+    assert code == 0 and err == [] and 1 <= F.load_result(tmp_path / "r.npz").n_links <= 4
 
 
 @pytest.mark.parametrize("argv,says", [
