@@ -24,7 +24,15 @@ def _parser() -> argparse.ArgumentParser:
                                             "(Lang, Pai & Seidel, GI 2003).")
     sub = p.add_subparsers(dest="command", required=True)
     f = sub.add_parser("fit", help="segment a scan into links, fit joints, tree and model")
-    f.add_argument("scan", help="scan .npz (format v1, see README)")
+    f.add_argument("scan", help="scan .npz (format v1, see README), or an animated file Blender "
+                                "imports (.glb/.gltf/.fbx/.abc/.usd/.usdc/.usda/.usdz) or an "
+                                "OBJ/PLY sequence (folder, pattern or first file): sampled in "
+                                "Blender over the file's own frames (needs bpy)")
+    f.add_argument("--clip", action="append", default=[], metavar="FILE",
+                   help="another clip of the same mesh (animated file or sequence; repeatable): "
+                        "all clips are fitted as one rig with one action each")
+    f.add_argument("--frames", metavar="START:END[:STEP]",
+                   help="animated file or sequence: frames to sample (default: the file's keys)")
     f.add_argument("--links", required=True,
                    help="number of links, or 'auto' to choose it from the data")
     f.add_argument("--mode", choices=("global", "pseudo"), default="global",
@@ -47,7 +55,12 @@ def _parser() -> argparse.ArgumentParser:
                         "(auto: refined for tracked scans)")
     f.add_argument("-o", "--output", help="result .npz")
     f.add_argument("--blend", help="also build the rig in Blender and save this .blend (needs bpy)")
-    f.add_argument("--glb", help="also export the rig as glTF binary (needs bpy)")
+    f.add_argument("--glb", help="also export the rig as glTF binary (needs bpy): the fitted mesh "
+                                 "and its armature only, one clip at the source's frames")
+    f.add_argument("--fbx", help="also export the rig as FBX (needs bpy), like --glb")
+    f.add_argument("--rotation-only", action="store_true",
+                   help="with --blend/--glb/--fbx: joints only rotate, bones keep their length, "
+                        "only the root translates (engines); prints the error this adds")
     f.add_argument("--png", help="also render a preview PNG (needs bpy)")
     f.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     s = sub.add_parser("sample", help="write a built-in sample scan")
@@ -145,11 +158,32 @@ def _cmd_info(a) -> int:
 
 def _cmd_fit(a) -> int:
     from . import files, fit as F
+    from . import headless
     R = files.RANGES
     t0 = time.perf_counter()
-    blender = bool(a.blend or a.glb or a.png)
-    # every output checked before any work: writable directory, not the input, not each other
-    files.check_outputs([a.scan], {"-o": a.output, "--blend": a.blend, "--glb": a.glb, "--png": a.png})
+    blender = bool(a.blend or a.glb or a.fbx or a.png)
+    # every output checked before any work: writable directory, not an input, not each other
+    files.check_outputs([a.scan, *a.clip], {"-o": a.output, "--blend": a.blend, "--glb": a.glb,
+                                            "--fbx": a.fbx, "--png": a.png})
+    if a.rotation_only and not (a.blend or a.glb or a.fbx):
+        raise _BadInput("--rotation-only applies to the rig: add --blend, --glb or --fbx")
+    kind = headless.input_kind(a.scan)
+    if kind is None:
+        raise _BadInput(f"{a.scan}: not a scan (.npz), an animated file "
+                        f"({'/'.join(headless.ANIMATED_EXTENSIONS)}) or an OBJ/PLY sequence")
+    try:
+        frames = headless.parse_frames(a.frames)
+    except ValueError as exc:
+        raise _BadInput(str(exc)) from None
+    if a.clip and kind == "npz":
+        raise _BadInput("--clip applies to animated files and sequences, not to a .npz scan")
+    for clip in a.clip:
+        if headless.input_kind(clip) not in ("animated", "sequence"):
+            raise _BadInput(f"--clip {clip}: not an animated file or an OBJ/PLY sequence")
+        if headless.input_kind(clip) == "animated" and not os.path.exists(clip):
+            raise _BadInput(f"--clip {clip}: no such file")
+    if frames is not None and kind == "npz":
+        raise _BadInput("--frames applies to animated files and sequences, not to a .npz scan")
     auto = str(a.links).strip().lower() == "auto"
     try:
         links = None if auto else R["links"].check("--links", a.links)
@@ -160,15 +194,24 @@ def _cmd_fit(a) -> int:
         _check(R["p_max"], "--p-max", a.p_max)
     _check(R["memory_budget"], "--memory-budget", a.memory_budget)
     if blender and a.strategy != "auto":
-        raise _BadInput("--strategy cannot be combined with --blend/--glb/--png: the Blender fit uses "
+        raise _BadInput("--strategy cannot be combined with --blend/--glb/--fbx/--png: the Blender fit uses "
                         "strategy auto")
-    if blender:
-        from . import headless
+    if blender or kind != "npz":
         try:
             headless.require_bpy()
         except RuntimeError as exc:
-            raise _BadInput(str(exc)) from None
-    sc = files.read_scan(a.scan)        # BadFile: one line naming the file and the problem
+            raise _BadInput(str(exc) if kind == "npz" else
+                            f"reading {os.path.basename(a.scan)} needs Blender: " + str(exc)) from None
+    prepared = None
+    if kind == "npz":
+        sc = files.read_scan(a.scan)    # BadFile: one line naming the file and the problem
+    else:
+        if not os.path.exists(a.scan) and kind == "animated":
+            raise _BadInput(f"{a.scan}: no such file")
+        try:
+            prepared, sc = headless.scan_from_file(a.scan, frames, clips=a.clip)
+        except RuntimeError as exc:
+            raise _BadInput(str(exc).splitlines()[0] if str(exc) else "cannot read the file") from None
     t_load = time.perf_counter() - t0
     usable = sc.n_faces - len(sc.degenerate_faces)
     why = f" (the scan's {usable} non-degenerate triangles)"
@@ -203,18 +246,21 @@ def _cmd_fit(a) -> int:
     result.timings = timings
     # all outputs are written to temporaries and renamed into place together at the end: a failure
     # or Ctrl-C anywhere before leaves every earlier file byte-identical and no partial file
+    rot_err = None
     with files.Outputs() as out:
         if a.output:
             out.write_npz(a.output, F.result_arrays(result), compress=True)
         if blender:
-            from . import headless
             if not a.quiet:
                 print("building the Blender outputs", flush=True)
             kwargs = dict(links=int(links), mode=a.mode.upper(), motion=a.motion.upper(),
                           p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
                           memory_budget=float(a.memory_budget))
-            headless.build_outputs(a.scan, kwargs, a.blend and out.path(a.blend),
-                                   a.glb and out.path(a.glb), a.png and out.path(a.png))
+            made = headless.build_outputs(a.scan, kwargs, a.blend and out.path(a.blend),
+                                          a.glb and out.path(a.glb), a.png and out.path(a.png),
+                                          fbx=a.fbx and out.path(a.fbx), mesh=prepared,
+                                          rotation_only=a.rotation_only)
+            rot_err = made.pop("rotation_only_error", None) if made else None
         written = out.commit()
     _committed.extend(written)
     if not a.quiet:
@@ -227,7 +273,10 @@ def _cmd_fit(a) -> int:
             f = sc.fields()
             expl = 100.0 * (1.0 - result.rms_articulation ** 2 / max(np.mean(np.sum(f * f, -1)), 1e-300))
             print(f"articulation explains {expl:.2f}% of the fields' energy")
-        for path in (a.output, a.blend, a.glb, a.png):
+        if rot_err is not None:
+            print(f"rotation-only joints: added error max {rot_err[0]:.3f}%, "
+                  f"rms {rot_err[1]:.3f}% of the diagonal")
+        for path in (a.output, a.blend, a.glb, a.fbx, a.png):
             if path:
                 print(f"wrote {path}")
     return 0

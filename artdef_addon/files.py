@@ -337,7 +337,7 @@ def read_result(path):
 
 # ---------------------------------------------------------------- writing
 #: the extension each kind of output must carry (its writer decides the format by it)
-OUTPUT_EXTENSIONS = {"--blend": ".blend", "--glb": ".glb", "--png": ".png"}
+OUTPUT_EXTENSIONS = {"--blend": ".blend", "--glb": ".glb", "--fbx": ".fbx", "--png": ".png"}
 
 
 def _same(a: str, b: str) -> bool:
@@ -377,7 +377,7 @@ def check_outputs(inputs, outputs: dict) -> None:
             raise OutputError(f"{opt} {p}: the directory {d} is not writable")
         for q in inputs:
             if q is not None and os.path.exists(p) and _same(p, os.fspath(q)):
-                raise OutputError(f"{opt} {p}: is the input file; choose another output name")
+                raise OutputError(f"{opt} {p}: would overwrite the input file; choose another output name")
     for i, (o1, p1) in enumerate(given):
         for o2, p2 in given[:i]:
             if os.path.realpath(p1) == os.path.realpath(p2) or (os.path.exists(p1) and _same(p1, p2)):

@@ -341,6 +341,8 @@ class _FitJob:
                 finally:
                     self.links_fraction = None
                 self.links, self.link_reason = int(choice.links), str(choice.reason)
+                errors = getattr(choice, "errors", None)
+                self.link_errors = [] if errors is None else [float(e) for e in errors]
             extra = {} if self.skin is None else {"skin": self.skin}
             reuse = getattr(choice, "reusable", None) if self.max_links is not None else None
             self.result = reuse(self.mode, self.motion, self.skin) if reuse is not None else None
@@ -654,6 +656,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         if st.fit_replay:
             st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
         st.fit_link_reason = job.link_reason
+        obj["artdef_link_errors"] = list(getattr(job, "link_errors", None) or [])  # panel's curve
         st.fit_skin = str(getattr(model, "skin", "") or "")
         st.fit_notes = "\n".join(job.notes)
         st.fit_reduced = job.reduced

@@ -121,8 +121,9 @@ CASES = ["truncated", "npy under npz name", "text file", "empty", "enormous head
          "NaN", "index out of range", "directory", "missing"]
 
 
-@pytest.mark.parametrize("case", CASES)
-@pytest.mark.parametrize("command", ["fit", "info"])
+# (fit reads a directory as an OBJ/PLY sequence folder, in Blender: not this boundary's case)
+@pytest.mark.parametrize("case,command", [(c, m) for c in CASES for m in ("fit", "info")
+                                          if (c, m) != ("directory", "fit")])
 def test_bad_scan_file_one_line_exit_2_nothing_written(rod, tmp_path, capsys, case, command):
     path, says = bad_scans(rod, tmp_path)[case]
     before = digest(path) if os.path.isfile(path) else None
@@ -202,10 +203,10 @@ def test_output_is_the_input_refused_before_work(rod_file, tmp_path, capsys, mon
     os.link(rod_file, tmp_path / "hard.npz")
     os.symlink(rod_file, tmp_path / "soft.npz")
     for argv, says in [
-        (["-o", rod_file], "is the input file"),
+        (["-o", rod_file], "would overwrite the input"),
         (["-o", tmp_path / "sub" / ".." / "rod.npz"], "does not exist"),
-        (["-o", tmp_path / "hard.npz"], "is the input file"),
-        (["-o", tmp_path / "soft.npz"], "is the input file"),
+        (["-o", tmp_path / "hard.npz"], "would overwrite the input"),
+        (["-o", tmp_path / "soft.npz"], "would overwrite the input"),
         (["--blend", rod_file], "must end in .blend"),
         (["--glb", tmp_path / "x.gltf"], "must end in .glb"),
         (["--png", tmp_path / "x.jpg"], "must end in .png"),
