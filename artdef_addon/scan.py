@@ -118,7 +118,7 @@ def _as_index(name, a, n, ndim=1):
     a = np.asarray(a)
     if a.dtype.kind not in "iu":
         if (a.dtype.kind == "f" and a.size and np.all(np.isfinite(a)) and np.all(a == np.round(a))
-                and np.abs(a).max() < 2 ** 53):
+                and float(np.abs(a).max()) < 2 ** 53):
             a = a.astype(np.int64)
         elif a.size == 0:
             a = a.astype(np.int64)
