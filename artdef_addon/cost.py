@@ -96,8 +96,7 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
     seconds = 2 * pairs * fields / PAIRS_PER_SECOND + linkages * pairs * LINKAGE_SECONDS_PER_ENTRY
     if reduced:
         seconds += triangles * fields * REDUCED_SECONDS_PER_TRIANGLE_FIELD  # streamed features, neighbour distances
-        # two fields' features of every triangle in flight (two threads) plus their temporaries
-        mem = 2 * 8.0 * pairs + FEATURE_BYTES * (u * fields + 3 * triangles) + 8.0 * 3 * vertices * fields * 2
+        mem = 2 * 8.0 * pairs + FEATURE_BYTES * (u * fields + triangles) + 8.0 * 3 * vertices * fields * 2
     else:
         mem = full
     if strategy == "summed":
