@@ -15,8 +15,10 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 
 NEED_BPY = ("--blend/--glb need Blender: run inside "
             "`blender -b -P scripts/artdef_fit.py -- ...` or install the bpy module")
@@ -235,9 +237,43 @@ def _parent_keep_transform(child, parent):
 
 
 def _abs(path: str) -> str:
-    path = os.path.abspath(path)
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    return path
+    # the directory must exist: the command line checks every output path before any work
+    # (files.check_outputs) and writes into temporaries there (files.Outputs)
+    return os.path.abspath(path)
+
+
+class _Interrupts:
+    """Ctrl-C during the Blender stage, handled without raising inside ``bpy``.
+
+    A KeyboardInterrupt raised while Blender runs Python (its start-up, add-on registration, an
+    operator, the exporter) left bpy half-initialised and crashed the process at exit (SIGSEGV,
+    or assorted exit codes). Here SIGINT only sets a flag: the fit operator's progress callback
+    cancels on it (``operators.ops.PROGRESS_HOOKS``) and :meth:`check`, called between the
+    stages, raises KeyboardInterrupt in plain Python, where the caller removes its temporaries.
+    """
+
+    def __init__(self):
+        self.flag = threading.Event()
+        self._old = None
+
+    def __enter__(self):
+        try:
+            self._old = signal.signal(signal.SIGINT, lambda *a: self.flag.set())
+        except ValueError:      # not the main thread: leave signals alone
+            self._old = None
+        return self
+
+    def hook(self, stage, fraction) -> bool:
+        return self.flag.is_set()
+
+    def check(self):
+        if self.flag.is_set():
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
 
 
 def save_blend(path: str) -> str:
@@ -485,6 +521,15 @@ def fit_options(fit_kwargs: dict) -> dict:
 
 
 def scan_from_file(path: str, frames=None, clips=()):
+    """See :func:`_scan_from_file`; Ctrl-C is a flag here too (:class:`_Interrupts`), raised as
+    KeyboardInterrupt once Blender's import and sampling have returned."""
+    with _Interrupts() as intr:
+        out = _scan_from_file(path, frames, clips)
+        intr.check()
+        return out
+
+
+def _scan_from_file(path: str, frames=None, clips=()):
     """Import an animated file or an OBJ/PLY sequence in a fresh scene and
     sample it into a tracked scan with ``bpy.ops.artdef.fields_from_file`` (the
     Fields from Animation code, over the file's own frames unless ``frames`` =
@@ -534,17 +579,42 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
     (``links``, ``mode``, ``motion``, ``p_max``, ``load_index``,
     ``frames_per_field``, ``auto_links``, ``max_links``, ``skin``, ``reduce``,
     ``memory_budget``); ``None`` values are left out, an unknown key is a
-    RuntimeError raised before any work."""
+    RuntimeError raised before any work.
+
+    Ctrl-C (SIGINT) is caught as a flag for the whole Blender stage and raised as
+    KeyboardInterrupt between its steps (see :class:`_Interrupts`); the caller writes to
+    temporary paths and removes them then (``files.Outputs``)."""
+    with _Interrupts() as intr:
+        return _build_outputs(intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only)
+
+
+def _build_outputs(intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only):
     bpy = _bpy()
+    intr.check()
     scan_path = os.path.abspath(scan_path)
 
     if mesh is None:  # a scan file: a fresh scene
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-        ensure_registered()
+        intr.check()
+    module_name = ensure_registered()
+    intr.check()
     fit_kwargs = fit_options(fit_kwargs)
+    ops = sys.modules.get(module_name + ".operators.ops")
+    hooks = getattr(ops, "PROGRESS_HOOKS", None)
+    if hooks is not None:
+        hooks.append(intr.hook)
+    try:
+        return _build_steps(bpy, intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only)
+    finally:
+        if hooks is not None and intr.hook in hooks:
+            hooks.remove(intr.hook)
 
+
+
+def _build_steps(bpy, intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only):
     if mesh is None:
         result = bpy.ops.artdef.import_scan(filepath=scan_path)
+        intr.check()
         if 'FINISHED' not in result:
             raise RuntimeError(f"artdef.import_scan({scan_path!r}) returned {set(result)}")
         mesh = bpy.context.view_layer.objects.active
@@ -557,6 +627,7 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
             result = bpy.ops.artdef.fit(**fit_kwargs)
         except TypeError as ex:  # a value of the wrong type or not in an enum
             raise RuntimeError(f"artdef.fit: {ex}") from ex
+    intr.check()                 # a cancelled fit (Ctrl-C) returns CANCELLED
     if 'FINISHED' not in result:
         raise RuntimeError(f"artdef.fit({fit_kwargs}) returned {set(result)}")
     armature = _find_armature(mesh)
@@ -574,12 +645,16 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
         written["rotation_only_error"] = (float(worst), float(rms))
     if blend is not None:
         written["blend"] = save_blend(blend)
+        intr.check()
     if glb is not None:
         written["glb"] = export_rig(glb, mesh, "GLB")
+        intr.check()
     if fbx is not None:
         written["fbx"] = export_rig(fbx, mesh, "FBX")
+        intr.check()
     if png is not None:
         written["png"] = render_png(png, mesh, armature)
+        intr.check()
     return written
 
 

@@ -14,6 +14,7 @@ from bpy_extras.io_utils import ImportHelper
 from ..artdef_addon import cost as _cost
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
+from ..artdef_addon.files import MAX_AUTO_LINKS
 from . import fitquality, io, rig
 from .props import (BUDGET_MIN, BUDGET_SOFT_MIN, MEMORY_BUDGET_DESCRIPTION, MODE_ITEMS,
                     MOTION_ITEMS, REDUCE_ITEMS, SKIN_ITEMS)
@@ -194,6 +195,10 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
             self.report({'ERROR'}, f"Could not read '{self.filepath}': {err}")
             return {'CANCELLED'}
         loads = 0 if scan.load_vertices is None else len(scan.load_vertices)
+        repeated = int(np.count_nonzero(io.repeated_vertex_faces(scan.faces)))
+        if repeated:
+            self.report({'WARNING'}, f"{repeated} triangle(s) use a vertex twice (zero area): left out "
+                                     f"of the mesh; the fit gives them no weight")
         self.report({'INFO'}, f"Imported '{obj.name}': {len(scan.vertices)} vertices, "
                               f"{scan.n_fields} {scan.kind} fields, {loads} load points "
                               f"({time.perf_counter() - t0:.2f} s)")
@@ -491,7 +496,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
                              description="Choose the number of links from the data (where the "
                                          "articulation error stops dropping), up to Max Links; "
                                          "the reason is reported. Turn off to set Links yourself")
-    max_links: IntProperty(name="Max Links", default=30, min=1, soft_max=64,
+    max_links: IntProperty(name="Max Links", default=30, min=1, max=MAX_AUTO_LINKS, soft_max=64,
                            description="Auto Links: the largest link count tried")
     skin: EnumProperty(name="Skin", items=SKIN_ITEMS, default='AUTO',
                        description="Skin weights: seam-blended, or refined per vertex by least "
@@ -607,7 +612,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
             self.report({'INFO'}, f"ArtDef: {note}")
         self.report({'INFO'}, f"'{obj.name}': {model.n_links} links, rms articulation "
                               f"{model.rms_articulation:.4g} "
-                              f"({model.articulation_error_percent:.2f}%), rms total "
+                              f"({model.error_percent_text()}), rms total "
                               f"{model.rms_total:.4g} ({job.seconds:.2f} s)"
                               + ("; reduced method on patches" if job.reduced else "")
                               + (f"; {obj.artdef.fit_replay}" if obj.artdef.fit_replay else ""))
@@ -627,7 +632,8 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         st.fit_seconds = job.seconds
         timings = getattr(model, "timings", None) or getattr(job.result, "timings", None) or {}
         st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
-        st.fit_articulation_percent = float(model.articulation_error_percent)
+        e = float(model.articulation_error_percent)
+        st.fit_articulation_percent = e if e == e else -1.0   # −1: undefined (one field), shown "n/a"
         res = job.vertex_residual
         st.fit_residual_max = float(res.max()) if len(res) else 0.0
         st.fit_residual_mean = float(res.mean()) if len(res) else 0.0
