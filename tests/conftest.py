@@ -149,3 +149,30 @@ def clean_scene(installed_addon):
         _enable_addon(installed_addon)
     assert _addon_enabled(installed_addon)
     yield bpy.context.scene
+
+
+# --------------------------------------------------------------------------
+# process exit
+# --------------------------------------------------------------------------
+# The bpy 4.5 module can deadlock in its C++ static destructors at interpreter
+# exit after a glTF import/export (operators/compat.py, "Process exit"): the
+# test process would then never end.  Once pytest has printed everything
+# (pytest_unconfigure is its last hook), run the Python exit handlers and leave
+# with pytest's exit status, skipping the C-level teardown.
+
+_EXIT_STATUS = [0]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    _EXIT_STATUS[0] = int(exitstatus)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    if sys.modules.get("bpy") is None:
+        return
+    import atexit
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(_EXIT_STATUS[0])
