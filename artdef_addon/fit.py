@@ -24,6 +24,8 @@ from . import joints as _joints
 from . import merge as _merge
 from . import model as _model
 from . import patches as _patches
+from . import splits as _splits
+from . import quality as _quality
 from . import swaps as _swaps
 from .metric import _workers, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
@@ -69,6 +71,14 @@ class FitResult:
     timings: dict = dataclasses.field(default_factory=dict)
     pseudo: list | None = None
     notes: list = dataclasses.field(default_factory=list)
+    # issue 19 (docs/metrics.md): E_RMS in scene units, the pre-issue-19 per-vertex-mean figure, and the
+    # verdict's comparison (one rigid motion per frame, a linear model of about the rig's size); NaN: unknown
+    e_rms: float = float("nan")
+    vertex_mean_error_percent: float = float("nan")
+    rigid_error_percent: float = float("nan")
+    linear_error_percent: float = float("nan")
+    linear_rank: int = 0
+    articulated: bool = True
 
     @property
     def n_links(self) -> int:
@@ -89,7 +99,8 @@ class FitResult:
             lines.append(f"  link {l:2d}: {np.count_nonzero(self.face_labels == l):6d} triangles, "
                          f"parent {par:>8s}, {where}, joint error {self.joint_errors[l]:.3g}")
         lines.append(f"rms error: articulation {self.rms_articulation:.4g} "
-                     f"({self.articulation_error_percent:.2f}%), articulation + residual {self.rms_total:.3g}")
+                     f"({self.articulation_error_percent:.3g}% Karni–Gotsman, E_RMS {self.e_rms:.3g}), "
+                     f"articulation + residual {self.rms_total:.3g}")
         lines.append("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in self.timings.items()))
         lines.extend(f"note: {n}" for n in self.notes)
         return "\n".join(lines)
@@ -447,6 +458,10 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
                 medoids = _merge.link_medoids([seg.features[p] for p in used_fields], seg.weights[used_fields],
                                               labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
             R, t = link_motions(labels, medoids)
+    splits = 0
+    if skin == "refined" and scan.kind != "greens" and swaps is not None:
+        # issue 19: a link holding two rigid parts is split, the least useful link dropped (docs/metrics.md)
+        labels, R, t, splits = _splits.split_merged(x0, fields, faces, labels, R, t, units=seg.valid[seg.unit_tri])
     refined = Rs = ts = None
     if skin == "refined":
         # the skin decomposition before the joints (issue 5). Where a short link is blended with
@@ -569,23 +584,23 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
             link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
     rms_art = float(np.sqrt(art_err.sum() / (P * N)))
     rms_tot = float(np.sqrt(tot_err.sum() / (P * N)))
-    # ‖X − X̄‖ over fields, streamed: X − X̄ = u_p − ū
-    mean_u = fields.mean(axis=0)
-    spread = np.sqrt(sum(float(np.sum((fields[i] - mean_u) ** 2)) for i in range(P)))
-    kg = float(100.0 * np.sqrt(art_err.sum()) / spread) if spread > 0 else 0.0
+    fid = _quality.fidelity(x0, fields, float(art_err.sum()))   # Karni–Gotsman, E_RMS (docs/metrics.md)
     timings["model"] = time.perf_counter() - t0
     res = FitResult(face_labels=labels, parents=parents, joints=joint, joint_errors=jerr,
                     heads=heads, tails=tails, frames=frames, grounded=grounded, weights=weights,
                     rotations=Ro, translations=to, angles=params[..., :3], locations=params[..., 3:],
                     residual=residual, link_residuals=link_res, rms_articulation=rms_art,
-                    rms_total=rms_tot, articulation_error_percent=kg, motion=motion, timings=timings,
-                    probe_load=scan.probe_load)
+                    rms_total=rms_tot, articulation_error_percent=fid.kg_percent, motion=motion, timings=timings,
+                    probe_load=scan.probe_load, e_rms=fid.e_rms, vertex_mean_error_percent=fid.vertex_mean_percent)
     if swaps is None:
         res.notes.append(f"link swaps skipped: {N:,} vertices × {P} fields is above their budget of "
                          f"{_swaps.SWAP_BUDGET:,} (each trial re-runs the skin decomposition)")
     if swaps:
         res.notes.append(f"{swaps} link swap(s): links that explained little were re-seeded where the skin fitted "
                          f"worst (tracked scans)")
+    if splits:
+        res.notes.append(f"{splits} link split(s): a link moving as two rigid parts was split and the link the skin "
+                         f"missed least dropped (tracked scans)")
     if scan.kind == "greens":
         res.kappa = np.transpose(params, (1, 2, 0)) / scan.probe_load
         res.residual = residual
@@ -668,6 +683,7 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     result.skin = skin
     result.mode = mode
     result.p_max = p_max
+    _quality.judge(result, scan.vertices, scan.fields())
     if mode == "pseudo":
         result.pseudo = []
         for k, g in enumerate(seg.groups):
@@ -693,6 +709,10 @@ _ARRAYS = ("face_labels", "parents", "joints", "joint_errors", "heads", "tails",
            "weights", "rotations", "translations", "angles", "locations", "residual", "link_residuals")
 
 
+#: scalar fidelity figures of issue 19 (older result files lack them)
+_FIDELITY = ("e_rms", "vertex_mean_error_percent", "rigid_error_percent", "linear_error_percent")
+
+
 def save_result(path, result: FitResult) -> None:
     """Write a result ``.npz`` (see README, "Result file")."""
     out = {k: getattr(result, k) for k in _ARRAYS}
@@ -701,6 +721,9 @@ def save_result(path, result: FitResult) -> None:
                probe_load=np.float64(result.probe_load),
                p_max=np.float64(np.nan if result.p_max is None else result.p_max),
                mode=np.array(result.mode), motion=np.array(result.motion), skin=np.array(result.skin),
+               notes=np.array([str(n) for n in result.notes], dtype=str),
+               **{k: np.float64(getattr(result, k)) for k in _FIDELITY},
+               linear_rank=np.int64(result.linear_rank), articulated=np.bool_(result.articulated),
                timing_names=np.array(list(result.timings.keys()), dtype=str),
                timing_seconds=np.array(list(result.timings.values()), dtype=np.float64))
     if result.kappa is not None:
@@ -729,6 +752,13 @@ def load_result(path) -> FitResult:
         r.mode = str(d["mode"])
         r.motion = str(d["motion"])
         r.skin = str(d["skin"]) if "skin" in d else "seam"
+        if not prefix:  # issue 19's keys; older files lack them (NaN / defaults)
+            for k in _FIDELITY:
+                if k in d:
+                    setattr(r, k, float(d[k]))
+            r.linear_rank = int(d["linear_rank"]) if "linear_rank" in d else 0
+            r.articulated = bool(d["articulated"]) if "articulated" in d else True
+            r.notes = d["notes"].tolist() if "notes" in d else []
         if prefix + "kappa" in d:
             r.kappa = d[prefix + "kappa"]
             r.load_vertices = d[prefix + "load_vertices"]
