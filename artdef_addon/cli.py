@@ -44,7 +44,7 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--png", help="also render a preview PNG (needs bpy)")
     f.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     s = sub.add_parser("sample", help="write a built-in sample scan")
-    s.add_argument("name", help="rod | branching | greens_rod")
+    s.add_argument("name", help="rod | branching | greens_rod | elastic")
     s.add_argument("-o", "--output", required=True)
     s.add_argument("--fields", type=int, help="number of fields (tracked samples)")
     s.add_argument("--noise", type=float, default=0.0, help="branching: noise relative to field RMS")

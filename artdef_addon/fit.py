@@ -24,7 +24,6 @@ from . import joints as _joints
 from . import merge as _merge
 from . import model as _model
 from . import patches as _patches
-from . import splits as _splits
 from . import quality as _quality
 from . import swaps as _swaps
 from .metric import _workers, field_features, rest_geometry
@@ -101,6 +100,10 @@ class FitResult:
         lines.append(f"rms error: articulation {self.rms_articulation:.4g} "
                      f"({self.articulation_error_percent:.3g}% Karni–Gotsman, E_RMS {self.e_rms:.3g}), "
                      f"articulation + residual {self.rms_total:.3g}")
+        if np.isfinite(self.rigid_error_percent):
+            lines.append(f"reference models (Karni–Gotsman): one rigid motion per frame {self.rigid_error_percent:.3g}%, "
+                         f"rank-{self.linear_rank} linear model {self.linear_error_percent:.3g}%"
+                         + ("" if self.articulated else "; the data do not look articulated (see note)"))
         lines.append("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in self.timings.items()))
         lines.extend(f"note: {n}" for n in self.notes)
         return "\n".join(lines)
@@ -458,10 +461,6 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
                 medoids = _merge.link_medoids([seg.features[p] for p in used_fields], seg.weights[used_fields],
                                               labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
             R, t = link_motions(labels, medoids)
-    splits = 0
-    if skin == "refined" and scan.kind != "greens" and swaps is not None:
-        # issue 19: a link holding two rigid parts is split, the least useful link dropped (docs/metrics.md)
-        labels, R, t, splits = _splits.split_merged(x0, fields, faces, labels, R, t, units=seg.valid[seg.unit_tri])
     refined = Rs = ts = None
     if skin == "refined":
         # the skin decomposition before the joints (issue 5). Where a short link is blended with
@@ -598,9 +597,6 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     if swaps:
         res.notes.append(f"{swaps} link swap(s): links that explained little were re-seeded where the skin fitted "
                          f"worst (tracked scans)")
-    if splits:
-        res.notes.append(f"{splits} link split(s): a link moving as two rigid parts was split and the link the skin "
-                         f"missed least dropped (tracked scans)")
     if scan.kind == "greens":
         res.kappa = np.transpose(params, (1, 2, 0)) / scan.probe_load
         res.residual = residual

@@ -620,6 +620,12 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         timings = getattr(model, "timings", None) or getattr(job.result, "timings", None) or {}
         st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
         st.fit_articulation_percent = float(model.articulation_error_percent)
+        # issue 19's figures (NaN/absent on a pseudo model or an old result: shown as unknown)
+        st.fit_e_rms = float(getattr(model, "e_rms", float("nan")))
+        st.fit_rigid_percent = float(getattr(model, "rigid_error_percent", float("nan")))
+        st.fit_linear_percent = float(getattr(model, "linear_error_percent", float("nan")))
+        st.fit_linear_rank = int(getattr(model, "linear_rank", 0))
+        st.fit_articulated = bool(getattr(model, "articulated", True))
         res = job.vertex_residual
         st.fit_residual_max = float(res.max()) if len(res) else 0.0
         st.fit_residual_mean = float(res.mean()) if len(res) else 0.0

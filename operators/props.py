@@ -140,8 +140,18 @@ class ARTDEF_PG_object(PropertyGroup):
     fit_summary: StringProperty(description="The core's summary of the fit")
     fit_articulation_percent: FloatProperty(
         name="Articulation error", precision=3, subtype='PERCENTAGE',
-        description="Articulation-only reconstruction error, 100 |X - X_art| / |X - mean X| "
-                    "over all fields (Karni-Gotsman style)")
+        description="Articulation-only reconstruction error, the Karni-Gotsman distortion "
+                    "100 |X - X_art| / |X - X_centroid| over all fields, X_centroid each frame's centroid")
+    fit_e_rms: FloatProperty(name="E_RMS", precision=6,
+                             description="|X - X_art| / sqrt(3 N F): RMS error per coordinate, scene units")
+    fit_rigid_percent: FloatProperty(name="One rigid motion", precision=3, subtype='PERCENTAGE',
+                                     description="Distortion left by one rigid motion per frame")
+    fit_linear_percent: FloatProperty(name="Linear model", precision=3, subtype='PERCENTAGE',
+                                      description="Distortion left by the fields' best rank-k linear model "
+                                                  "of about the rig's size")
+    fit_linear_rank: IntProperty(name="Linear rank")
+    fit_articulated: BoolProperty(default=True,
+                                  description="False when the data do not look articulated (see the notes)")
     fit_residual_max: FloatProperty(
         name="Residual colour scale", precision=6,
         description="Per-vertex articulation residual shown red in 'artdef_residual_color' "

@@ -101,7 +101,14 @@ class ARTDEF_PT_main(bpy.types.Panel):
                     col.label(text=line)
             if st.fit_p_max > 0:
                 col.label(text=f"Hardening p_max: {st.fit_p_max:g}")
-            col.label(text=f"Articulation error: {st.fit_articulation_percent:.2f}%")
+            col.label(text=f"Articulation error (Karni–Gotsman): {st.fit_articulation_percent:.3g}%")
+            if st.fit_e_rms == st.fit_e_rms:   # not NaN
+                col.label(text=f"E_RMS: {st.fit_e_rms:.4g}")
+            if st.fit_rigid_percent == st.fit_rigid_percent:
+                col.label(text=f"One rigid motion: {st.fit_rigid_percent:.3g}%, "
+                               f"rank-{st.fit_linear_rank} linear: {st.fit_linear_percent:.3g}%")
+            if not st.fit_articulated:
+                col.label(text="The data do not look articulated (see note)", icon='ERROR')
             col.label(text=f"RMS articulation: {st.fit_rms_articulation:.4g}")
             col.label(text=f"RMS total: {st.fit_rms_total:.4g}")
             if st.fit_diagonal > 0:

@@ -776,6 +776,9 @@ def test_fit_stores_residual_and_link_quality(clean_scene, pkg, sample_files, tm
     # per-link and overall figures, as stored properties
     st = obj.artdef
     assert st.fit_articulation_percent == pytest.approx(result.articulation_error_percent, rel=1e-6)
+    assert st.fit_e_rms == pytest.approx(result.e_rms, rel=1e-5)            # issue 19's figures
+    assert st.fit_rigid_percent == pytest.approx(result.rigid_error_percent, rel=1e-5)
+    assert st.fit_articulated and result.articulated
     assert st.fit_residual_max == pytest.approx(float(stored.max()), rel=1e-5)
     assert len(st.fit_link_stats) == 3
     rigid = np.sqrt(np.mean(result.link_residuals ** 2, axis=0))
@@ -791,7 +794,8 @@ def test_fit_stores_residual_and_link_quality(clean_scene, pkg, sample_files, tm
     # the panel shows them
     st.show_link_stats = True
     labels = [e[1] for e in draw_panel() if e[0] == "label"]
-    assert any(l.startswith("Articulation error:") and l.endswith("%") for l in labels)
+    assert any(l.startswith("Articulation error (Karni–Gotsman):") and l.endswith("%") for l in labels)
+    assert any(l.startswith("E_RMS: ") for l in labels) and any(l.startswith("One rigid motion: ") for l in labels)
     assert any(l.startswith("Vertex residual: mean") for l in labels)
     assert sum(l.startswith(("00 ", "01 ", "02 ")) for l in labels) == 3
     assert any(l.startswith("Replay: field p at frame (p+1)x10") for l in labels)
