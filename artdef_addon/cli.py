@@ -1,6 +1,7 @@
 """Command line: ``python -m artdef_addon fit|sample|info ...``.
 
-Exit codes: 0 success, 2 bad input (one line on stderr, no output written), 1 other failure.
+Exit codes: 0 success, 2 bad input (one line on stderr, nothing written), 1 failure while working
+or writing (one line, earlier files intact), 130 interrupted. See docs/cli.md.
 """
 from __future__ import annotations
 
@@ -12,13 +13,26 @@ import time
 import numpy as np
 
 
+#: --links auto tries up to this many links unless --max-links says otherwise (then clamped to the
+#: scan's triangles; an explicit --max-links above them is refused)
+DEFAULT_MAX_LINKS = 30
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m artdef_addon",
+    p = _Parser(prog="python -m artdef_addon",
                                 description="Articulated deformation from displacement fields "
                                             "(Lang, Pai & Seidel, GI 2003).")
     sub = p.add_subparsers(dest="command", required=True)
     f = sub.add_parser("fit", help="segment a scan into links, fit joints, tree and model")
-    f.add_argument("scan", help="scan .npz (format v1, see README)")
+    f.add_argument("scan", help="scan .npz (format v1, see README), or an animated file Blender "
+                                "imports (.glb/.gltf/.fbx/.abc/.usd/.usdc/.usda/.usdz) or an "
+                                "OBJ/PLY sequence (folder, pattern or first file): sampled in "
+                                "Blender over the file's own frames (needs bpy)")
+    f.add_argument("--clip", action="append", default=[], metavar="FILE",
+                   help="another clip of the same mesh (animated file or sequence; repeatable): "
+                        "all clips are fitted as one rig with one action each")
+    f.add_argument("--frames", metavar="START:END[:STEP]",
+                   help="animated file or sequence: frames to sample (default: the file's keys)")
     f.add_argument("--links", required=True,
                    help="number of links, or 'auto' to choose it from the data")
     f.add_argument("--mode", choices=("global", "pseudo"), default="global",
@@ -27,7 +41,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="link motion: motion centroid (paper) or least squares (comparison)")
     f.add_argument("--p-max", type=float, default=None,
                    help="strain hardening limit (> 1, in probe loads); off by default")
-    f.add_argument("--max-links", type=int, default=30, help="upper bound for --links auto")
+    f.add_argument("--max-links", type=int, default=None,
+                   help=f"upper bound for --links auto (default {DEFAULT_MAX_LINKS}, at most the triangles)")
     f.add_argument("--memory-budget", type=float, default=2.0,
                    help="GB; above it the fit switches to the reduced method on patches")
     f.add_argument("--reduce", choices=("auto", "on", "off"), default="auto",
@@ -40,7 +55,12 @@ def _parser() -> argparse.ArgumentParser:
                         "(auto: refined for tracked scans)")
     f.add_argument("-o", "--output", help="result .npz")
     f.add_argument("--blend", help="also build the rig in Blender and save this .blend (needs bpy)")
-    f.add_argument("--glb", help="also export the rig as glTF binary (needs bpy)")
+    f.add_argument("--glb", help="also export the rig as glTF binary (needs bpy): the fitted mesh "
+                                 "and its armature only, one clip at the source's frames")
+    f.add_argument("--fbx", help="also export the rig as FBX (needs bpy), like --glb")
+    f.add_argument("--rotation-only", action="store_true",
+                   help="with --blend/--glb/--fbx: joints only rotate, bones keep their length, "
+                        "only the root translates (engines); prints the error this adds")
     f.add_argument("--png", help="also render a preview PNG (needs bpy)")
     f.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     s = sub.add_parser("sample", help="write a built-in sample scan")
@@ -56,50 +76,76 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+#: outputs renamed into place by this run (so a late Ctrl-C is reported truthfully)
+_committed: list = []
+
+
 class _BadInput(Exception):
     pass
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``artdef: error: ...``, exit 2 (no usage block)."""
+
+    def error(self, message):
+        raise _BadInput(message)
+
+
 def _fail(msg: str, code: int = 2) -> int:
-    print(f"artdef: error: {msg}", file=sys.stderr)
+    print(f"artdef: error: {msg}", file=sys.stderr, flush=True)
     return code
 
 
+def _check(rng, name, value):
+    from .files import OptionError
+    try:
+        return rng.check(name, value)
+    except OptionError as exc:
+        raise _BadInput(str(exc)) from None
+
+
 def _cmd_sample(a) -> int:
-    from . import samples, scan as S
+    from . import files, samples
+    R = files.RANGES
+    files.check_outputs([], {"-o": a.output})
+    if a.name not in samples.NAMES:
+        raise _BadInput(f"unknown sample {a.name!r}; choose from {', '.join(samples.NAMES)}")
     kw = {}
     if a.fields is not None:
-        kw["n_fields"] = a.fields
+        if a.name == "greens_rod":
+            raise _BadInput("--fields does not apply to greens_rod (its fields are its load columns)")
+        kw["n_fields"] = _check(R["fields"], "--fields", a.fields)
     if a.seed is not None:
-        kw["seed"] = a.seed
+        if a.name == "greens_rod":
+            raise _BadInput("--seed does not apply to greens_rod (it is not random)")
+        kw["seed"] = _check(R["seed"], "--seed", a.seed)
+    noise = _check(R["noise"], "--noise", a.noise)
     if a.name == "branching":
-        kw.update(noise=a.noise, bulges=a.bulges, disconnected=a.disconnected)
+        kw.update(noise=noise, bulges=a.bulges, disconnected=a.disconnected)
+    elif noise or a.bulges or a.disconnected:
+        raise _BadInput("--noise, --bulges and --disconnected apply to the branching sample only")
     try:
         sc = samples.make(a.name, **kw)
     except (ValueError, TypeError) as exc:
         raise _BadInput(str(exc)) from None
-    S.save_scan(a.output, sc)
+    from .scan import validate_scan
+    validate_scan(sc)       # a sample is written only if it can be fitted
+    from .scan import save_scan
+    save_scan(a.output, sc)
     print(f"wrote {a.output}: {a.name}, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields ({sc.kind})")
     return 0
 
 
 def _cmd_info(a) -> int:
-    from . import scan as S
-    try:
-        with np.load(a.path, allow_pickle=False) as z:
-            is_result = "face_labels" in z.files
-    except (OSError, ValueError, EOFError) as exc:
-        raise _BadInput(f"cannot read {a.path}: {exc}") from None
-    if is_result:
-        from . import fit as F
+    from . import files
+    d = files.read_npz(a.path)          # BadFile: one line naming the file
+    if "face_labels" in d:
+        res = files.read_result(a.path)
         print(f"{a.path}: fit result")
-        print(F.load_result(a.path).summary())
+        print(res.summary())
         return 0
-    try:
-        sc = S.load_scan(a.path)
-    except S.ScanError as exc:
-        raise _BadInput(str(exc)) from None
+    sc = files.read_scan(a.path)
     print(f"{a.path}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields, {sc.n_loads} loads, "
           f"{0 if sc.support_vertices is None else len(sc.support_vertices)} support vertices, "
@@ -111,66 +157,112 @@ def _cmd_info(a) -> int:
 
 
 def _cmd_fit(a) -> int:
-    from . import fit as F, scan as S
+    from . import files, fit as F
+    from . import headless
+    R = files.RANGES
     t0 = time.perf_counter()
-    for path in (a.output, a.blend, a.glb, a.png):
-        if path and os.path.isdir(path):
-            raise _BadInput(f"output path is a directory: {path}")
-    if a.blend or a.glb or a.png:
-        from . import headless
+    blender = bool(a.blend or a.glb or a.fbx or a.png)
+    # every output checked before any work: writable directory, not an input, not each other
+    files.check_outputs([a.scan, *a.clip], {"-o": a.output, "--blend": a.blend, "--glb": a.glb,
+                                            "--fbx": a.fbx, "--png": a.png})
+    if a.rotation_only and not (a.blend or a.glb or a.fbx):
+        raise _BadInput("--rotation-only applies to the rig: add --blend, --glb or --fbx")
+    kind = headless.input_kind(a.scan)
+    if kind is None:
+        raise _BadInput(f"{a.scan}: not a scan (.npz), an animated file "
+                        f"({'/'.join(headless.ANIMATED_EXTENSIONS)}) or an OBJ/PLY sequence")
+    try:
+        frames = headless.parse_frames(a.frames)
+    except ValueError as exc:
+        raise _BadInput(str(exc)) from None
+    if a.clip and kind == "npz":
+        raise _BadInput("--clip applies to animated files and sequences, not to a .npz scan")
+    for clip in a.clip:
+        if headless.input_kind(clip) not in ("animated", "sequence"):
+            raise _BadInput(f"--clip {clip}: not an animated file or an OBJ/PLY sequence")
+        if headless.input_kind(clip) == "animated" and not os.path.exists(clip):
+            raise _BadInput(f"--clip {clip}: no such file")
+    if frames is not None and kind == "npz":
+        raise _BadInput("--frames applies to animated files and sequences, not to a .npz scan")
+    auto = str(a.links).strip().lower() == "auto"
+    try:
+        links = None if auto else R["links"].check("--links", a.links)
+    except files.OptionError as exc:
+        raise _BadInput(f"{exc} (or 'auto')") from None
+    max_links = None if a.max_links is None else _check(R["max_links"], "--max-links", a.max_links)
+    if a.p_max is not None:
+        _check(R["p_max"], "--p-max", a.p_max)
+    _check(R["memory_budget"], "--memory-budget", a.memory_budget)
+    if blender and a.strategy != "auto":
+        raise _BadInput("--strategy cannot be combined with --blend/--glb/--fbx/--png: the Blender fit uses "
+                        "strategy auto")
+    if blender or kind != "npz":
         try:
             headless.require_bpy()
         except RuntimeError as exc:
-            raise _BadInput(str(exc)) from None
-    try:
-        sc = S.load_scan(a.scan)
-    except S.ScanError as exc:
-        raise _BadInput(str(exc)) from None
-    t_load = time.perf_counter() - t0
-    if (a.blend or a.glb or a.png) and a.strategy != "auto":
-        raise _BadInput("--strategy cannot be combined with --blend/--glb/--png: the Blender fit uses "
-                        "strategy auto")
-    auto = str(a.links).strip().lower() == "auto"
-    if not auto:
+            raise _BadInput(str(exc) if kind == "npz" else
+                            f"reading {os.path.basename(a.scan)} needs Blender: " + str(exc)) from None
+    prepared = None
+    if kind == "npz":
+        sc = files.read_scan(a.scan)    # BadFile: one line naming the file and the problem
+    else:
+        if not os.path.exists(a.scan) and kind == "animated":
+            raise _BadInput(f"{a.scan}: no such file")
         try:
-            links = int(a.links)
-        except ValueError:
-            raise _BadInput(f"--links must be a whole number or 'auto', got {a.links!r}") from None
-    try:
-        t_fit = time.perf_counter()
-        reduce = {"auto": None, "on": True, "off": False}[a.reduce]
-        seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
-        if not a.quiet:
-            print(seg.estimate.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
-        t_auto = 0.0
-        if auto:
-            from .linkcount import choose_links
-            t0 = time.perf_counter()
-            choice = choose_links(seg, max_links=a.max_links)
-            links = choice.links
-            t_auto = time.perf_counter() - t0
-        result = choice.reusable(a.mode, a.motion, a.skin) if auto else None
-        if result is not None:      # the chooser fitted this count already
-            result.p_max = a.p_max
-        else:
-            result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
-                           strategy=a.strategy, skin=a.skin)
-    except S.ScanError as exc:
-        raise _BadInput(str(exc)) from None
+            prepared, sc = headless.scan_from_file(a.scan, frames, clips=a.clip)
+        except RuntimeError as exc:
+            raise _BadInput(str(exc).splitlines()[0] if str(exc) else "cannot read the file") from None
+    t_load = time.perf_counter() - t0
+    usable = sc.n_faces - len(sc.degenerate_faces)
+    why = f" (the scan's {usable} non-degenerate triangles)"
+    if auto and max_links is None:
+        max_links = min(DEFAULT_MAX_LINKS, usable)
+    elif auto:
+        max_links = _check(R["max_links"].within(usable, why), "--max-links", max_links)
+    else:
+        links = _check(R["links"].within(usable, why), "--links", links)
+    t_fit = time.perf_counter()
+    reduce = {"auto": None, "on": True, "off": False}[a.reduce]
+    seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
+    if not a.quiet:
+        print(seg.estimate.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
+    t_auto = 0.0
+    if auto:
+        from .linkcount import choose_links
+        t0 = time.perf_counter()
+        choice = choose_links(seg, max_links=max_links)
+        links = choice.links
+        t_auto = time.perf_counter() - t0
+    result = choice.reusable(a.mode, a.motion, a.skin) if auto else None
+    if result is not None:      # the chooser fitted this count already
+        result.p_max = a.p_max
+    else:
+        result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
+                       strategy=a.strategy, skin=a.skin)
     timings = {"load": t_load, **result.timings}
     if auto:
         timings["links auto"] = t_auto
     timings["total"] = time.perf_counter() - t_fit
     result.timings = timings
-    if a.output:
-        F.save_result(a.output, result)
-    written = {}
-    if a.blend or a.glb or a.png:
-        from . import headless
-        kwargs = dict(links=int(links), mode=a.mode.upper(), motion=a.motion.upper(),
-                      p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
-                      memory_budget=float(a.memory_budget))
-        written = headless.build_outputs(a.scan, kwargs, a.blend, a.glb, a.png)
+    # all outputs are written to temporaries and renamed into place together at the end: a failure
+    # or Ctrl-C anywhere before leaves every earlier file byte-identical and no partial file
+    rot_err = None
+    with files.Outputs() as out:
+        if a.output:
+            out.write_npz(a.output, F.result_arrays(result), compress=True)
+        if blender:
+            if not a.quiet:
+                print("building the Blender outputs", flush=True)
+            kwargs = dict(links=int(links), mode=a.mode.upper(), motion=a.motion.upper(),
+                          p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
+                          memory_budget=float(a.memory_budget))
+            made = headless.build_outputs(a.scan, kwargs, a.blend and out.path(a.blend),
+                                          a.glb and out.path(a.glb), a.png and out.path(a.png),
+                                          fbx=a.fbx and out.path(a.fbx), mesh=prepared,
+                                          rotation_only=a.rotation_only)
+            rot_err = made.pop("rotation_only_error", None) if made else None
+        written = out.commit()
+    _committed.extend(written)
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
@@ -181,17 +273,47 @@ def _cmd_fit(a) -> int:
             f = sc.fields()
             expl = 100.0 * (1.0 - result.rms_articulation ** 2 / max(np.mean(np.sum(f * f, -1)), 1e-300))
             print(f"articulation explains {expl:.2f}% of the fields' energy")
-        for path in (a.output, *written.values()):
+        if rot_err is not None:
+            print(f"rotation-only joints: added error max {rot_err[0]:.3f}%, "
+                  f"rms {rot_err[1]:.3f}% of the diagonal")
+        for path in (a.output, a.blend, a.glb, a.fbx, a.png):
             if path:
                 print(f"wrote {path}")
     return 0
 
 
 def main(argv=None) -> int:
-    a = _parser().parse_args(argv)
+    """Run the command line; returns the exit code (README, "Exit codes and guarantees"):
+    0 success, 2 bad input or unusable output path (one line, nothing written), 1 a failure while
+    working or writing (one line, earlier files intact), 130 interrupted (Ctrl-C; nothing written)."""
+    from .files import OptionError, OutputError
+    from .scan import ScanError
+    _committed.clear()
     try:
+        a = _parser().parse_args(argv)
         return {"fit": _cmd_fit, "sample": _cmd_sample, "info": _cmd_info}[a.command](a)
-    except _BadInput as exc:
-        return _fail(str(exc).splitlines()[0] if str(exc) else "bad input")
+    except (_BadInput, ScanError, OutputError, OptionError) as exc:
+        return _fail(" ".join(str(exc).split()) or "bad input")
     except KeyboardInterrupt:
-        return _fail("interrupted", 130)
+        if _committed:
+            return _fail(f"interrupted after writing {', '.join(_committed)}", 130)
+        return _fail("interrupted; no file was written or changed", 130)
+    except BrokenPipeError:         # stdout closed by the reader (| head): not an error of ours
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141
+    except SystemExit as exc:       # --help / --version
+        return exc.code if isinstance(exc.code, int) else 0
+    except OSError as exc:
+        where = f" {exc.filename}" if exc.filename else ""
+        return _fail(f"cannot write{where}: {exc.strerror or exc}; earlier files are unchanged", 1)
+    except MemoryError:
+        return _fail("out of memory; earlier files are unchanged", 1)
+    except Exception as exc:
+        if os.environ.get("ARTDEF_TRACEBACK"):
+            raise
+        msg = " ".join(str(exc).split())
+        return _fail(f"internal error: {type(exc).__name__}: {msg} (earlier files are unchanged; "
+                     "set ARTDEF_TRACEBACK=1 for the traceback)", 1)

@@ -88,6 +88,15 @@ class FitResult:
         """Pose parameters per field, (P, L, 6): Euler XYZ then location."""
         return np.concatenate([self.angles, self.locations], axis=-1)
 
+    def error_percent_text(self) -> str:
+        """The Karni–Gotsman distortion as text: "0.0274% Karni–Gotsman", or "n/a" where it is undefined
+        (every frame's vertices at one point: nothing spreads about the frames' centroids). Defined for a
+        single field too (docs/metrics.md); the old per-vertex-mean figure was not."""
+        e = self.articulation_error_percent
+        if np.isfinite(e):
+            return f"{e:.3g}% Karni–Gotsman"
+        return "n/a (the frames do not spread about their centroids)"
+
     def summary(self) -> str:
         lines = [f"links: {self.n_links}  mode: {self.mode}  motion: {self.motion}  skin: {self.skin}"]
         for l in range(self.n_links):
@@ -98,7 +107,7 @@ class FitResult:
             lines.append(f"  link {l:2d}: {np.count_nonzero(self.face_labels == l):6d} triangles, "
                          f"parent {par:>8s}, {where}, joint error {self.joint_errors[l]:.3g}")
         lines.append(f"rms error: articulation {self.rms_articulation:.4g} "
-                     f"({self.articulation_error_percent:.3g}% Karni–Gotsman, E_RMS {self.e_rms:.3g}), "
+                     f"({self.error_percent_text()}, E_RMS {self.e_rms:.3g}), "
                      f"articulation + residual {self.rms_total:.3g}")
         if np.isfinite(self.rigid_error_percent):
             lines.append(f"reference models (Karni–Gotsman): one rigid motion per frame {self.rigid_error_percent:.3g}%, "
@@ -710,7 +719,13 @@ _FIDELITY = ("e_rms", "vertex_mean_error_percent", "rigid_error_percent", "linea
 
 
 def save_result(path, result: FitResult) -> None:
-    """Write a result ``.npz`` (see README, "Result file")."""
+    """Write a result ``.npz`` (see README, "Result file") atomically, with exactly the name ``path``."""
+    from .files import write_npz
+    write_npz(path, result_arrays(result), compress=True)
+
+
+def result_arrays(result: FitResult) -> dict:
+    """The arrays of a result file (what :func:`save_result` writes)."""
     out = {k: getattr(result, k) for k in _ARRAYS}
     out.update(rms_articulation=np.float64(result.rms_articulation), rms_total=np.float64(result.rms_total),
                articulation_error_percent=np.float64(result.articulation_error_percent),
@@ -730,13 +745,18 @@ def save_result(path, result: FitResult) -> None:
         for k, sub in enumerate(result.pseudo):
             for name in _ARRAYS + ("kappa", "load_vertices"):
                 out[f"pseudo{k}_{name}"] = getattr(sub, name)
-    np.savez_compressed(path, **out)
+    return out
 
 
 def load_result(path) -> FitResult:
-    """Read a result written by :func:`save_result` (``allow_pickle=False``)."""
-    with np.load(path, allow_pickle=False) as z:
-        d = {k: z[k] for k in z.files}
+    """Read a result written by :func:`save_result` (never unpickles): :func:`files.read_result`
+    checks every key, dtype and shape first; a bad file is one ``ScanError`` line."""
+    from .files import read_result
+    return read_result(path)
+
+
+def _result_from_arrays(d: dict) -> FitResult:
+    """A :class:`FitResult` from the arrays of a checked result file."""
 
     def build(prefix=""):
         kw = {k: d[prefix + k] for k in _ARRAYS}

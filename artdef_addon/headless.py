@@ -15,8 +15,10 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 
 NEED_BPY = ("--blend/--glb need Blender: run inside "
             "`blender -b -P scripts/artdef_fit.py -- ...` or install the bpy module")
@@ -48,6 +50,45 @@ def require_bpy() -> None:
         return
     if loaded is None or importlib.util.find_spec("bpy") is None:
         raise RuntimeError(NEED_BPY)
+
+
+#: Animated files Blender imports (fitted through ``artdef.fields_from_file``).
+ANIMATED_EXTENSIONS = (".glb", ".gltf", ".fbx", ".abc", ".usd", ".usdc", ".usda", ".usdz")
+SEQUENCE_EXTENSIONS = (".obj", ".ply")
+
+
+def input_kind(path: str) -> str | None:
+    """'npz' (a scan), 'animated' (a file Blender imports), 'sequence' (an OBJ/PLY
+    sequence: a folder, a pattern or one numbered file), or None."""
+    if os.path.isdir(path) or any(c in os.path.basename(path) for c in "*?["):
+        return "sequence"
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".npz":
+        return "npz"
+    if ext in ANIMATED_EXTENSIONS:
+        return "animated"
+    if ext in SEQUENCE_EXTENSIONS:
+        return "sequence"
+    return None
+
+
+def parse_frames(text: str | None):
+    """``START:END[:STEP]`` -> (start, end, step); None for None.  ValueError
+    with one line saying what is wrong."""
+    if text is None:
+        return None
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        start, end = int(parts[0]), int(parts[1])
+        step = int(parts[2]) if len(parts) == 3 else 1
+    except ValueError:
+        raise ValueError(f"--frames must be START:END or START:END:STEP (whole numbers), "
+                         f"got {text!r}") from None
+    if end < start or step < 1:
+        raise ValueError(f"--frames {text}: END must not be before START and STEP must be >= 1")
+    return start, end, step
 
 
 # --------------------------------------------------------------------------
@@ -181,9 +222,43 @@ def _parent_keep_transform(child, parent):
 
 
 def _abs(path: str) -> str:
-    path = os.path.abspath(path)
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    return path
+    # the directory must exist: the command line checks every output path before any work
+    # (files.check_outputs) and writes into temporaries there (files.Outputs)
+    return os.path.abspath(path)
+
+
+class _Interrupts:
+    """Ctrl-C during the Blender stage, handled without raising inside ``bpy``.
+
+    A KeyboardInterrupt raised while Blender runs Python (its start-up, add-on registration, an
+    operator, the exporter) left bpy half-initialised and crashed the process at exit (SIGSEGV,
+    or assorted exit codes). Here SIGINT only sets a flag: the fit operator's progress callback
+    cancels on it (``operators.ops.PROGRESS_HOOKS``) and :meth:`check`, called between the
+    stages, raises KeyboardInterrupt in plain Python, where the caller removes its temporaries.
+    """
+
+    def __init__(self):
+        self.flag = threading.Event()
+        self._old = None
+
+    def __enter__(self):
+        try:
+            self._old = signal.signal(signal.SIGINT, lambda *a: self.flag.set())
+        except ValueError:      # not the main thread: leave signals alone
+            self._old = None
+        return self
+
+    def hook(self, stage, fraction) -> bool:
+        return self.flag.is_set()
+
+    def check(self):
+        if self.flag.is_set():
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
 
 
 def save_blend(path: str) -> str:
@@ -193,107 +268,27 @@ def save_blend(path: str) -> str:
     return path
 
 
-def _driven_bone_channels(armature):
-    """(data path, index) of every driven pose-bone channel: on a Green's rig,
-    the load helper bones' rotations and offsets (none on other rigs)."""
-    ad = armature.animation_data
-    if ad is None:
-        return []
-    return [(fc.data_path, fc.array_index) for fc in ad.drivers if fc.data_path.startswith("pose.bones[")]
-
-
-def _bake_driven_pose(bpy, armature):
-    """Key the driven pose-bone channels (a Green's rig: the load helper bones,
-    driven by the load empties, which the load sweep animates) at every frame
-    of the scene into a new action on the armature, so Blender's glTF exporter
-    samples the joints (it exports an armature's animation only from its
-    action; a driven shape key is baked inside that armature action too).  The
-    helpers are not exported (not deforming), but the exporter samples every
-    joint's evaluated pose, which follows its helper through the link bone's
-    constraint.  The drivers stay: they give the same values the keys hold.
-    An animator's action on the rig (keys on the link bones, on top of the
-    loads) is copied into the bake, so the export carries both.
-    Returns what :func:`_unbake` needs."""
-    scene = bpy.context.scene
-    ad = armature.animation_data
-    saved = (ad.action, scene.frame_current)
-    channels = _driven_bone_channels(armature)
-    if ad.action is not None:
-        action = ad.action.copy()
-        action.name = f"{armature.name}_glTF_bake"
-    else:
-        action = bpy.data.actions.new(f"{armature.name}_glTF_bake")
-    ad.action = action
-    for frame in range(scene.frame_start, scene.frame_end + 1):
-        scene.frame_set(frame)
-        for path, index in channels:
-            armature.keyframe_insert(path, index=index, frame=frame)
-    return armature, action, saved
-
-
-def _unbake(bpy, baked):
-    armature, action, (old_action, frame) = baked
-    armature.animation_data.action = old_action
-    bpy.data.actions.remove(action)
-    bpy.context.scene.frame_set(frame)
-
-
-def export_glb(path: str, mesh, armature) -> str:
-    """Skinned mesh (one joint per deforming bone, inverse bind matrices),
-    shape keys as morph targets, and the scene's animation, as .glb.
-
-    A rig driven by load empties (Green's scans) has its driven pose baked
-    into a temporary action for the export only (a copy of the animator's
-    action if the link bones were keyed; removed again afterwards, the live
-    drivers and the animator's action are never touched), so the glTF
-    animation moves the joints and the morph weights through the load sweep
-    over the scene's frame range."""
+def export_rig(path: str, mesh, fmt: str | None = None) -> str:
+    """Write the rig of ``mesh`` with ``bpy.ops.artdef.export_rig`` (the Export
+    Rig operator of the UI: only the fitted mesh and its armature, one clip at
+    the replay's frames, no debug colours, at most 4 influences, a Green's rig
+    baked); ``fmt`` 'GLB' | 'GLTF_SEPARATE' | 'FBX' (default: from the name)."""
     bpy = _bpy()
+    ensure_registered()
     path = _abs(path)
-    baked = None
-    if armature is not None:
-        _parent_keep_transform(mesh, armature)
-        if _driven_bone_channels(armature):  # a Green's rig: driven by its load empties
-            baked = _bake_driven_pose(bpy, armature)
-    try:
-        _export_gltf(bpy, path, mesh, armature)
-    finally:
-        if baked is not None:
-            _unbake(bpy, baked)
-    if not os.path.isfile(path):
-        raise RuntimeError(f"glTF exporter wrote nothing to {path}")
+    kwargs = {"filepath": path}
+    if fmt is not None:
+        kwargs["export_format"] = fmt
+    with bpy.context.temp_override(active_object=mesh, object=mesh, selected_objects=[mesh]):
+        result = bpy.ops.artdef.export_rig(**kwargs)
+    if 'FINISHED' not in result or not os.path.isfile(path):
+        raise RuntimeError(f"artdef.export_rig could not write {path}")
     return path
 
 
-def _export_gltf(bpy, path, mesh, armature):
-    with bpy.context.temp_override(active_object=mesh, object=mesh,
-                                   selected_objects=[o for o in (mesh, armature) if o]):
-        bpy.ops.export_scene.gltf(
-            filepath=path,
-            check_existing=False,
-            export_format='GLB',
-            use_selection=False,
-            export_yup=True,
-            export_apply=False,            # keep the skin: no modifier baking
-            export_skins=True,
-            export_def_bones=True,         # joints = deforming bones = links
-            export_rest_position_armature=True,
-            export_armature_object_remove=True,  # validator: no NODE_SKINNED_MESH_NON_ROOT
-            export_morph=True,
-            export_morph_normal=True,
-            export_morph_animation=True,
-            export_animations=True,
-            export_force_sampling=True,    # drivers -> sampled morph weights
-            # The armature's action and the mesh's shape-key action merged
-            # into ONE glTF animation, so viewers play joints and morph
-            # weights together (ACTIONS would give two unsynchronised ones).
-            export_animation_mode='ACTIVE_ACTIONS',
-            export_nla_strips_merged_animation_name="ArtDef",
-            export_vertex_color='ACTIVE',  # link colours as COLOR_0
-            export_cameras=False,
-            export_lights=False,
-            export_extras=False,
-        )
+def export_glb(path: str, mesh, armature=None) -> str:
+    """The rig of ``mesh`` as .glb (see :func:`export_rig`)."""
+    return export_rig(path, mesh, "GLB")
 
 
 # --------------------------------------------------------------------------
@@ -510,28 +505,106 @@ def fit_options(fit_kwargs: dict) -> dict:
     return kwargs
 
 
+def scan_from_file(path: str, frames=None, clips=()):
+    """See :func:`_scan_from_file`; Ctrl-C is a flag here too (:class:`_Interrupts`), raised as
+    KeyboardInterrupt once Blender's import and sampling have returned."""
+    with _Interrupts() as intr:
+        out = _scan_from_file(path, frames, clips)
+        intr.check()
+        return out
+
+
+def _scan_from_file(path: str, frames=None, clips=()):
+    """Import an animated file or an OBJ/PLY sequence in a fresh scene and
+    sample it into a tracked scan with ``bpy.ops.artdef.fields_from_file`` (the
+    Fields from Animation code, over the file's own frames unless ``frames`` =
+    (start, end, step)).  ``clips``: more files or sequences of the same mesh,
+    each one clip: the scans are merged, so the fit makes one rig with one
+    action per clip (named after the files).  Returns ``(mesh object holding
+    the scan, Scan)``; RuntimeError with a one-line reason on failure."""
+    bpy = _bpy()
+    import importlib  # noqa: PLC0415
+
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    module_name = ensure_registered()
+    kwargs = {"filepath": os.path.abspath(path)}
+    if frames is not None:
+        kwargs.update(frame_start=frames[0], frame_end=frames[1], frame_step=frames[2])
+    objects = []
+    for i, p in enumerate([path, *clips]):
+        kw = dict(kwargs, filepath=os.path.abspath(p)) if i == 0 else {"filepath": os.path.abspath(p)}
+        messages = []
+        try:
+            result = bpy.ops.artdef.fields_from_file(**kw)
+        except RuntimeError as ex:  # the operator's ERROR report
+            messages.append(str(ex).strip().splitlines()[-1].replace("Error: ", ""))
+            result = {'CANCELLED'}
+        if 'FINISHED' not in result:
+            raise RuntimeError(messages[0] if messages else f"cannot sample {p}")
+        objects.append(bpy.context.view_layer.objects.active)
+    if clips:
+        animfile = importlib.import_module(module_name + ".operators.animfile")
+        names = [animfile.clip_name(p) for p in [path, *clips]]
+        try:
+            animfile.merge_clip_scans(objects, names)
+        except ValueError as ex:
+            raise RuntimeError(str(ex)) from None
+    mesh = objects[0]
+    bpy.context.view_layer.objects.active = mesh
+    io = importlib.import_module(module_name + ".operators.io")
+    return mesh, io.read_scan(mesh).scan
+
+
 def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
-                  glb: str | None, png: str | None) -> dict:
+                  glb: str | None, png: str | None, fbx: str | None = None,
+                  mesh=None, rotation_only: bool = False) -> dict:
     """Fit ``scan_path`` with ``bpy.ops.artdef.fit(**fit_kwargs)`` in a fresh
     scene and write the requested outputs; return ``{"blend"|"glb"|"png": path}``
     for those written.  ``fit_kwargs`` keys are the operator's property names
     (``links``, ``mode``, ``motion``, ``p_max``, ``load_index``,
     ``frames_per_field``, ``auto_links``, ``max_links``, ``skin``, ``reduce``,
     ``memory_budget``); ``None`` values are left out, an unknown key is a
-    RuntimeError raised before any work."""
+    RuntimeError raised before any work.
+
+    Ctrl-C (SIGINT) is caught as a flag for the whole Blender stage and raised as
+    KeyboardInterrupt between its steps (see :class:`_Interrupts`); the caller writes to
+    temporary paths and removes them then (``files.Outputs``)."""
+    with _Interrupts() as intr:
+        return _build_outputs(intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only)
+
+
+def _build_outputs(intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only):
     bpy = _bpy()
+    intr.check()
     scan_path = os.path.abspath(scan_path)
 
-    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-    ensure_registered()
+    if mesh is None:  # a scan file: a fresh scene
+        bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+        intr.check()
+    module_name = ensure_registered()
+    intr.check()
     fit_kwargs = fit_options(fit_kwargs)
+    ops = sys.modules.get(module_name + ".operators.ops")
+    hooks = getattr(ops, "PROGRESS_HOOKS", None)
+    if hooks is not None:
+        hooks.append(intr.hook)
+    try:
+        return _build_steps(bpy, intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only)
+    finally:
+        if hooks is not None and intr.hook in hooks:
+            hooks.remove(intr.hook)
 
-    result = bpy.ops.artdef.import_scan(filepath=scan_path)
-    if 'FINISHED' not in result:
-        raise RuntimeError(f"artdef.import_scan({scan_path!r}) returned {set(result)}")
-    mesh = bpy.context.view_layer.objects.active
-    if mesh is None or mesh.type != 'MESH':
-        raise RuntimeError("artdef.import_scan did not leave the imported mesh active")
+
+
+def _build_steps(bpy, intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only):
+    if mesh is None:
+        result = bpy.ops.artdef.import_scan(filepath=scan_path)
+        intr.check()
+        if 'FINISHED' not in result:
+            raise RuntimeError(f"artdef.import_scan({scan_path!r}) returned {set(result)}")
+        mesh = bpy.context.view_layer.objects.active
+        if mesh is None or mesh.type != 'MESH':
+            raise RuntimeError("artdef.import_scan did not leave the imported mesh active")
 
     with bpy.context.temp_override(active_object=mesh, object=mesh,
                                    selected_objects=[mesh], selected_editable_objects=[mesh]):
@@ -539,22 +612,36 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
             result = bpy.ops.artdef.fit(**fit_kwargs)
         except TypeError as ex:  # a value of the wrong type or not in an enum
             raise RuntimeError(f"artdef.fit: {ex}") from ex
+    intr.check()                 # a cancelled fit (Ctrl-C) returns CANCELLED
     if 'FINISHED' not in result:
         raise RuntimeError(f"artdef.fit({fit_kwargs}) returned {set(result)}")
     armature = _find_armature(mesh)
+    if armature is not None:  # bones an animator can read: source joint names, else root-first
+        with bpy.context.temp_override(active_object=mesh, object=mesh, selected_objects=[mesh]):
+            bpy.ops.artdef.name_bones(scheme='AUTO')
+            if rotation_only:
+                if 'FINISHED' not in bpy.ops.artdef.rotation_only():
+                    raise RuntimeError("--rotation-only: the rig has no action (Green's rigs "
+                                       "are driven by their loads)")
 
     written = {}
-    if glb is not None and armature is not None:
-        # Parent before saving, so the .blend and the .glb hold the same rig.
-        _parent_keep_transform(mesh, armature)
+    if rotation_only and mesh.data.get("artdef_rotation_only_error") is not None:
+        worst, rms = mesh.data["artdef_rotation_only_error"]
+        written["rotation_only_error"] = (float(worst), float(rms))
     if blend is not None:
         written["blend"] = save_blend(blend)
+        intr.check()
     if glb is not None:
-        written["glb"] = export_glb(glb, mesh, armature)
+        written["glb"] = export_rig(glb, mesh, "GLB")
+        intr.check()
+    if fbx is not None:
+        written["fbx"] = export_rig(fbx, mesh, "FBX")
+        intr.check()
     if png is not None:
         written["png"] = render_png(png, mesh, armature)
+        intr.check()
     return written
 
 
-__all__ = ["build_outputs", "fit_options", "fit_option_names", "require_bpy", "ensure_registered",
+__all__ = ["build_outputs", "scan_from_file", "input_kind", "parse_frames", "export_rig", "fit_options", "fit_option_names", "require_bpy", "ensure_registered",
            "save_blend", "export_glb", "render_png", "NEED_BPY"]

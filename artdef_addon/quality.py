@@ -95,9 +95,11 @@ def fidelity(x0: np.ndarray, fields: np.ndarray, sq_error: float) -> Fidelity:
     mean_u = fields.mean(axis=0)
     vertex_spread = sum(float(np.sum((fields[p] - mean_u) ** 2)) for p in range(F))
     num = float(np.sqrt(max(sq_error, 0.0)))
-    return Fidelity(kg_percent=100.0 * num / np.sqrt(frame_spread) if frame_spread > 0 else 0.0,
-                    e_rms=num / np.sqrt(3.0 * N * F) if N * F else 0.0,
-                    vertex_mean_percent=100.0 * num / np.sqrt(vertex_spread) if vertex_spread > 0 else 0.0)
+    # NaN where a denominator vanishes: the per-vertex mean for one field (or identical fields), the
+    # distortion only for frames whose vertices all coincide
+    return Fidelity(kg_percent=100.0 * num / np.sqrt(frame_spread) if frame_spread > 0 else float("nan"),
+                    e_rms=num / np.sqrt(3.0 * N * F) if N * F else float("nan"),
+                    vertex_mean_percent=100.0 * num / np.sqrt(vertex_spread) if vertex_spread > 0 else float("nan"))
 
 
 def _frame_spread(x0, fields) -> float:

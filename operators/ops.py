@@ -14,6 +14,7 @@ from bpy_extras.io_utils import ImportHelper
 from ..artdef_addon import cost as _cost
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
+from ..artdef_addon.files import MAX_AUTO_LINKS
 from . import fitquality, io, rig
 from .props import (BUDGET_MIN, BUDGET_SOFT_MIN, MEMORY_BUDGET_DESCRIPTION, MODE_ITEMS,
                     MOTION_ITEMS, REDUCE_ITEMS, SKIN_ITEMS)
@@ -194,6 +195,10 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
             self.report({'ERROR'}, f"Could not read '{self.filepath}': {err}")
             return {'CANCELLED'}
         loads = 0 if scan.load_vertices is None else len(scan.load_vertices)
+        repeated = int(np.count_nonzero(io.repeated_vertex_faces(scan.faces)))
+        if repeated:
+            self.report({'WARNING'}, f"{repeated} triangle(s) use a vertex twice (zero area): left out "
+                                     f"of the mesh; the fit gives them no weight")
         self.report({'INFO'}, f"Imported '{obj.name}': {len(scan.vertices)} vertices, "
                               f"{scan.n_fields} {scan.kind} fields, {loads} load points "
                               f"({time.perf_counter() - t0:.2f} s)")
@@ -336,6 +341,8 @@ class _FitJob:
                 finally:
                     self.links_fraction = None
                 self.links, self.link_reason = int(choice.links), str(choice.reason)
+                errors = getattr(choice, "errors", None)
+                self.link_errors = [] if errors is None else [float(e) for e in errors]
             extra = {} if self.skin is None else {"skin": self.skin}
             reuse = getattr(choice, "reusable", None) if self.max_links is not None else None
             self.result = reuse(self.mode, self.motion, self.skin) if reuse is not None else None
@@ -489,7 +496,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
                              description="Choose the number of links from the data (where the "
                                          "articulation error stops dropping), up to Max Links; "
                                          "the reason is reported. Turn off to set Links yourself")
-    max_links: IntProperty(name="Max Links", default=30, min=1, soft_max=64,
+    max_links: IntProperty(name="Max Links", default=30, min=1, max=MAX_AUTO_LINKS, soft_max=64,
                            description="Auto Links: the largest link count tried")
     skin: EnumProperty(name="Skin", items=SKIN_ITEMS, default='AUTO',
                        description="Skin weights: seam-blended, or refined per vertex by least "
@@ -599,7 +606,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
             self.report({'INFO'}, f"ArtDef: {note}")
         self.report({'INFO'}, f"'{obj.name}': {model.n_links} links, rms articulation "
                               f"{model.rms_articulation:.4g} "
-                              f"({model.articulation_error_percent:.2f}%), rms total "
+                              f"({model.error_percent_text()}), rms total "
                               f"{model.rms_total:.4g} ({job.seconds:.2f} s)"
                               + ("; reduced method on patches" if job.reduced else "")
                               + (f"; {obj.artdef.fit_replay}" if obj.artdef.fit_replay else ""))
@@ -619,7 +626,8 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         st.fit_seconds = job.seconds
         timings = getattr(model, "timings", None) or getattr(job.result, "timings", None) or {}
         st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
-        st.fit_articulation_percent = float(model.articulation_error_percent)
+        e = float(model.articulation_error_percent)
+        st.fit_articulation_percent = e if e == e else -1.0   # −1: undefined (degenerate fields), shown "n/a"
         # issue 19's figures (NaN/absent on a pseudo model or an old result: shown as unknown)
         st.fit_e_rms = float(getattr(model, "e_rms", float("nan")))
         st.fit_rigid_percent = float(getattr(model, "rigid_error_percent", float("nan")))
@@ -654,6 +662,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         if st.fit_replay:
             st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
         st.fit_link_reason = job.link_reason
+        obj["artdef_link_errors"] = list(getattr(job, "link_errors", None) or [])  # panel's curve
         st.fit_skin = str(getattr(model, "skin", "") or "")
         st.fit_notes = "\n".join(job.notes)
         st.fit_reduced = job.reduced

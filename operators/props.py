@@ -11,6 +11,8 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
                        StringProperty)
 from bpy.types import PropertyGroup
 
+from ..artdef_addon.files import MAX_AUTO_LINKS  # bounded work: the command line's --max-links limit
+
 MODE_ITEMS = (
     ('GLOBAL', "Global", "One articulated model for all fields (the main path)"),
     ('PSEUDO', "Pseudo", "Fit each load point separately and build the rig of one load "
@@ -87,7 +89,7 @@ class ARTDEF_PG_object(PropertyGroup):
         name="Auto Links", default=False,
         description="Choose the number of links from the data (where the articulation error "
                     "stops dropping), up to Max Links; turn off to set Links yourself")
-    max_links: IntProperty(name="Max Links", default=30, min=1, soft_max=64,
+    max_links: IntProperty(name="Max Links", default=30, min=1, max=MAX_AUTO_LINKS, soft_max=64,
                            description="Auto Links: the largest link count tried")
     skin: EnumProperty(name="Skin", items=SKIN_ITEMS, default='AUTO',
                        description="How the skin weights are made")

@@ -5,7 +5,18 @@ import textwrap
 
 import bpy
 
-from ..operators import io, ops, rig
+from ..operators import io, ops, rig, wording
+
+
+def _subpanel(layout, idname, title):
+    """A collapsible section (closed by default): its body layout, or None while
+    closed.  Blender 4.1+ ``layout.panel``; older ones draw it open."""
+    if hasattr(layout, "panel"):
+        header, body = layout.panel(idname, default_closed=True)
+        header.label(text=title)
+        return body
+    layout.label(text=title)
+    return layout.column()
 
 
 class ARTDEF_PT_main(bpy.types.Panel):
@@ -20,6 +31,7 @@ class ARTDEF_PT_main(bpy.types.Panel):
         col = layout.column(align=True)
         col.operator("artdef.import_scan", icon='IMPORT')
         col.operator("artdef.import_mesh_sequence", icon='FILE_FOLDER')
+        col.operator("artdef.fields_from_file", icon='FILE_MOVIE')
         obj = context.active_object
         if obj is None or obj.type != 'MESH':
             layout.label(text="Select a mesh to fit", icon='INFO')
@@ -59,17 +71,23 @@ class ARTDEF_PT_main(bpy.types.Panel):
             col.prop(st, "max_links")
         else:
             col.prop(st, "links")
-        col.prop(st, "mode")
-        if st.mode == 'PSEUDO':
-            col.prop(st, "load_index")
-        col.prop(st, "motion")
-        col.prop(st, "p_max")
-        if ops.HAS_SKIN:
-            col.prop(st, "skin")
-        if io.has_scan(mesh):
-            col.prop(st, "frames_per_field")
-        col.prop(st, "reduce")
-        col.prop(st, "memory_budget")
+        greens = io.has_scan(mesh) and io.scan_info(mesh)["kind"] == "greens"
+        if greens:  # Green's-only settings: only for Green's scans
+            col.prop(st, "mode")
+            if st.mode == 'PSEUDO':
+                col.prop(st, "load_index")
+            col.prop(st, "p_max")
+        adv = _subpanel(box, "ARTDEF_fit_advanced", "Advanced")
+        if adv is not None:
+            adv.use_property_split = True
+            adv.use_property_decorate = False
+            adv.prop(st, "motion")
+            if ops.HAS_SKIN:
+                adv.prop(st, "skin")
+            if io.has_scan(mesh):
+                adv.prop(st, "frames_per_field")
+            adv.prop(st, "reduce")
+            adv.prop(st, "memory_budget")
         if io.has_scan(mesh):
             _draw_estimate(box, mesh, st)
         row = box.row(align=True)
@@ -86,6 +104,13 @@ class ARTDEF_PT_main(bpy.types.Panel):
         row = box.row(align=True)
         row.operator("artdef.preview_links", icon='COLOR').links = st.links
         row.operator("artdef.clear_rig", icon='TRASH')
+        if rig.has_rig(obj):  # hand-off: engines (Export Rig), animators (Finalize)
+            row = box.row(align=True)
+            row.operator("artdef.export_rig", icon='EXPORT')
+            row.operator("artdef.finalize", icon='CHECKMARK')
+            row = box.row(align=True)
+            row.operator("artdef.name_bones", icon='SORTALPHA')
+            row.operator("artdef.rotation_only", icon='CON_ROTLIKE')
 
         if st.has_fit:
             box = layout.box()
@@ -97,11 +122,20 @@ class ARTDEF_PT_main(bpy.types.Panel):
             col.label(text=f"Links: {st.fit_links}   {mode}, {st.fit_motion.lower()}"
                            + (f", {st.fit_skin} skin" if st.fit_skin else ""))
             if st.fit_link_reason:
-                for line in textwrap.wrap(st.fit_link_reason, 44):
+                errors = list(obj.get("artdef_link_errors", []))
+                plain = wording.plain_link_reason(st.fit_links, errors) or st.fit_link_reason
+                for line in textwrap.wrap(plain, 44):
                     col.label(text=line)
+                curve = _subpanel(box, "ARTDEF_link_curve", "Error by link count")
+                if curve is not None:
+                    for line in wording.error_curve_lines(errors, st.fit_links) or \
+                            textwrap.wrap(st.fit_link_reason, 44):
+                        curve.label(text=line)
             if st.fit_p_max > 0:
                 col.label(text=f"Hardening p_max: {st.fit_p_max:g}")
-            col.label(text=f"Articulation error (Karni–Gotsman): {st.fit_articulation_percent:.3g}%")
+            e = st.fit_articulation_percent
+            col.label(text=f"Articulation error (Karni–Gotsman): {e:.3g}%" if e >= 0
+                      else "Articulation error (Karni–Gotsman): n/a")
             if st.fit_e_rms == st.fit_e_rms:   # not NaN
                 col.label(text=f"E_RMS: {st.fit_e_rms:.4g}")
             if st.fit_rigid_percent == st.fit_rigid_percent:
