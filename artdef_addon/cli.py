@@ -225,7 +225,13 @@ def _cmd_fit(a) -> int:
     reduce = {"auto": None, "on": True, "off": False}[a.reduce]
     seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
     if not a.quiet:
-        print(seg.estimate.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
+        from .cost import estimate
+        # the segmenter's estimate, priced for this link count (or the --links auto search)
+        budget = {None: a.memory_budget * 2 ** 30, True: 0.0, False: float("inf")}[reduce]
+        est = estimate(len(seg.valid), sc.n_fields, sc.n_vertices, seg.strategy, budget,
+                       units=len(seg.unit_tri) if seg.reduced else None,
+                       links=None if auto else links, auto=auto)
+        print(est.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
     t_auto = 0.0
     if auto:
         from .linkcount import choose_links
