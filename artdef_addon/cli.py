@@ -11,6 +11,27 @@ import time
 
 import numpy as np
 
+from .options import FitOptions, OptionsError
+
+
+def _option_arguments(parser) -> None:
+    """One ``--name`` per :class:`FitOptions` field, from its declaration (type, default, choices,
+    unit and description are not repeated here)."""
+    for name, (default, opt) in FitOptions.declaration().items():
+        flag = "--" + name.replace("_", "-")
+        helptext = opt.description + (f" [{opt.unit}]" if opt.unit else "")
+        if opt.choices:
+            helptext += " (" + "; ".join(f"{c.value}: {c.description}" for c in opt.choices) + ")"
+        if opt.greens_only:
+            helptext += " [Green's scans]"
+        helptext = helptext.replace("%", "%%")
+        if opt.choices:
+            parser.add_argument(flag, choices=opt.values, default=default, help=helptext,
+                                metavar="{" + ",".join(opt.values) + "}")
+        else:
+            helptext += f" (default: {'off' if default is None else default})"
+            parser.add_argument(flag, type=opt.type, default=default, help=helptext)
+
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m artdef_addon",
@@ -21,23 +42,7 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("scan", help="scan .npz (format v1, see README)")
     f.add_argument("--links", required=True,
                    help="number of links, or 'auto' to choose it from the data")
-    f.add_argument("--mode", choices=("global", "pseudo"), default="global",
-                   help="one articulation for all fields, or one per Green's block column")
-    f.add_argument("--motion", choices=("robust", "lsq"), default="robust",
-                   help="link motion: motion centroid (paper) or least squares (comparison)")
-    f.add_argument("--p-max", type=float, default=None,
-                   help="strain hardening limit (> 1, in probe loads); off by default")
-    f.add_argument("--max-links", type=int, default=30, help="upper bound for --links auto")
-    f.add_argument("--memory-budget", type=float, default=2.0,
-                   help="GB; above it the fit switches to the reduced method on patches")
-    f.add_argument("--reduce", choices=("auto", "on", "off"), default="auto",
-                   help="reduced method on patches: automatic by memory budget, always, never")
-    f.add_argument("--strategy", choices=("auto", "summed", "paper"), default="auto",
-                   help="how fields are combined: the paper's per-field trees with split-and-merge, "
-                        "or one tree over the summed distances (auto: paper for Green's scans)")
-    f.add_argument("--skin", choices=("auto", "seam", "refined"), default="auto",
-                   help="skin weights: seam blend (paper) or refined by least squares "
-                        "(auto: refined for tracked scans)")
+    _option_arguments(f)
     f.add_argument("-o", "--output", help="result .npz")
     f.add_argument("--blend", help="also build the rig in Blender and save this .blend (needs bpy)")
     f.add_argument("--glb", help="also export the rig as glTF binary (needs bpy)")
@@ -92,9 +97,9 @@ def _cmd_info(a) -> int:
     except (OSError, ValueError, EOFError) as exc:
         raise _BadInput(f"cannot read {a.path}: {exc}") from None
     if is_result:
-        from . import fit as F
+        from .fit import FitResult
         print(f"{a.path}: fit result")
-        print(F.load_result(a.path).summary())
+        print(FitResult.load(a.path).summary())
         return 0
     try:
         sc = S.load_scan(a.path)
@@ -110,14 +115,47 @@ def _cmd_info(a) -> int:
     return 0
 
 
+def _blender_layer():
+    """The Blender layer's headless module (``operators/headless.py``), for --blend/--glb/--png.
+
+    The core never imports bpy (not even lazily): the Blender layer does. This command line only
+    loads that module, by its place in the extension, when Blender outputs are asked for — as
+    ``<extension>.operators.headless`` when the core runs inside the installed extension package,
+    else from the file next to this package (a checkout run with ``python -m artdef_addon``).
+    That module checks bpy, registers the extension and builds the rig from the result this
+    command already fitted (one fit per command).
+    """
+    import importlib
+    import importlib.util
+    parent = __package__.rpartition(".")[0]
+    if parent:
+        return importlib.import_module(parent + ".operators.headless")
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "operators", "headless.py")
+    name = "artdef_headless_entry"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or not os.path.isfile(path):
+        raise _BadInput(f"--blend/--glb/--png need the Blender layer ({path} is missing)")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 def _cmd_fit(a) -> int:
-    from . import fit as F, scan as S
+    from . import api, scan as S
     t0 = time.perf_counter()
     for path in (a.output, a.blend, a.glb, a.png):
         if path and os.path.isdir(path):
             raise _BadInput(f"output path is a directory: {path}")
+    try:
+        options = FitOptions(**{name: getattr(a, name) for name in FitOptions.declaration()})
+    except OptionsError as exc:
+        raise _BadInput(str(exc)) from None
+    headless = None
     if a.blend or a.glb or a.png:
-        from . import headless
+        headless = _blender_layer()
         try:
             headless.require_bpy()
         except RuntimeError as exc:
@@ -127,55 +165,36 @@ def _cmd_fit(a) -> int:
     except S.ScanError as exc:
         raise _BadInput(str(exc)) from None
     t_load = time.perf_counter() - t0
-    if (a.blend or a.glb or a.png) and a.strategy != "auto":
-        raise _BadInput("--strategy cannot be combined with --blend/--glb/--png: the Blender fit uses "
-                        "strategy auto")
     auto = str(a.links).strip().lower() == "auto"
-    if not auto:
+    if auto:
+        links = "auto"
+    else:
         try:
             links = int(a.links)
         except ValueError:
             raise _BadInput(f"--links must be a whole number or 'auto', got {a.links!r}") from None
     try:
         t_fit = time.perf_counter()
-        reduce = {"auto": None, "on": True, "off": False}[a.reduce]
-        seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
         if not a.quiet:
-            print(seg.estimate.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
-        t_auto = 0.0
-        if auto:
-            from .linkcount import choose_links
-            t0 = time.perf_counter()
-            choice = choose_links(seg, max_links=a.max_links)
-            links = choice.links
-            t_auto = time.perf_counter() - t0
-        result = choice.reusable(a.mode, a.motion, a.skin) if auto else None
-        if result is not None:      # the chooser fitted this count already
-            result.p_max = a.p_max
-        else:
-            result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
-                           strategy=a.strategy, skin=a.skin)
-    except S.ScanError as exc:
+            est, _ = api.plan(sc.n_faces - len(sc.degenerate_faces), sc.n_fields, sc.n_vertices, sc.kind,
+                              options)
+            print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
+        result = api.fit(sc, links, options)
+    except (S.ScanError, OptionsError) as exc:
         raise _BadInput(str(exc)) from None
     timings = {"load": t_load, **result.timings}
-    if auto:
-        timings["links auto"] = t_auto
     timings["total"] = time.perf_counter() - t_fit
     result.timings = timings
     if a.output:
-        F.save_result(a.output, result)
+        result.save(a.output)
     written = {}
-    if a.blend or a.glb or a.png:
-        from . import headless
-        kwargs = dict(links=int(links), mode=a.mode.upper(), motion=a.motion.upper(),
-                      p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
-                      memory_budget=float(a.memory_budget))
-        written = headless.build_outputs(a.scan, kwargs, a.blend, a.glb, a.png)
+    if headless is not None:
+        written = headless.build_outputs(a.scan, sc, result, a.blend, a.glb, a.png)
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
-        if auto:
-            print(choice.reason)
+        if result.link_reason:
+            print(result.link_reason)
         print(result.summary())
         if sc.kind == "greens":
             f = sc.fields()

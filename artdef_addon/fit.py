@@ -14,7 +14,9 @@ Stages (paper §5–§7, METHOD §2–§10):
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
+import types
 
 import numpy as np
 
@@ -69,6 +71,11 @@ class FitResult:
     timings: dict = dataclasses.field(default_factory=dict)
     pseudo: list | None = None
     notes: list = dataclasses.field(default_factory=list)
+    link_reason: str = ""            # why ``links="auto"`` chose this count (empty: count given)
+    options: object = None           # the FitOptions it was asked with ("auto" kept), when known
+    reduced: bool = False            # the reduced method on patches ran
+    estimate: object = None          # the cost.Estimate of the method that ran
+    groups: list | None = None       # fields of each load point (Green's scans: pseudo models)
 
     @property
     def n_links(self) -> int:
@@ -78,6 +85,15 @@ class FitResult:
     def params(self) -> np.ndarray:
         """Pose parameters per field, (P, L, 6): Euler XYZ then location."""
         return np.concatenate([self.angles, self.locations], axis=-1)
+
+    def save(self, path) -> None:
+        """Write this result as a ``.npz`` (see docs/formats.md)."""
+        save_result(path, self)
+
+    @classmethod
+    def load(cls, path) -> "FitResult":
+        """Read a result written by :meth:`save`."""
+        return load_result(path)
 
     def summary(self) -> str:
         lines = [f"links: {self.n_links}  mode: {self.mode}  motion: {self.motion}  skin: {self.skin}"]
@@ -702,7 +718,8 @@ def save_result(path, result: FitResult) -> None:
                p_max=np.float64(np.nan if result.p_max is None else result.p_max),
                mode=np.array(result.mode), motion=np.array(result.motion), skin=np.array(result.skin),
                timing_names=np.array(list(result.timings.keys()), dtype=str),
-               timing_seconds=np.array(list(result.timings.values()), dtype=np.float64))
+               timing_seconds=np.array(list(result.timings.values()), dtype=np.float64),
+               link_reason=np.array(result.link_reason))
     if result.kappa is not None:
         out["kappa"] = result.kappa
         out["load_vertices"] = result.load_vertices
@@ -735,6 +752,7 @@ def load_result(path) -> FitResult:
         return r
     res = build()
     res.timings = dict(zip(d["timing_names"].tolist(), d["timing_seconds"].tolist()))
+    res.link_reason = str(d["link_reason"]) if "link_reason" in d else ""
     if "pseudo_face_labels" in d:
         res.pseudo = []
         k = 0
@@ -742,3 +760,16 @@ def load_result(path) -> FitResult:
             res.pseudo.append(build(f"pseudo{k}_"))
             k += 1
     return res
+
+
+class _FitModule(types.ModuleType):
+    """``artdef_addon.fit`` is this module (the stages, :class:`Segmenter`, :class:`FitResult`)
+    and, called, the public entry point :func:`artdef_addon.api.fit`: ``artdef_addon.fit(scan,
+    links="auto")``. One name for scripts without renaming the module other code imports."""
+
+    def __call__(self, scan, links, options=None, progress=None, **overrides):
+        from .api import fit as public_fit
+        return public_fit(scan, links, options, progress, **overrides)
+
+
+sys.modules[__name__].__class__ = _FitModule

@@ -5,7 +5,9 @@ import textwrap
 
 import bpy
 
+from ..artdef_addon.options import FitOptions
 from ..operators import io, ops, rig
+from ..operators.props import SETTING_NAMES
 
 
 class ARTDEF_PT_main(bpy.types.Panel):
@@ -53,36 +55,30 @@ class ARTDEF_PT_main(bpy.types.Panel):
         col = box.column()
         col.use_property_split = True
         col.use_property_decorate = False
-        if ops.HAS_AUTO_LINKS:
-            col.prop(st, "auto_links")
-        if st.auto_links and ops.HAS_AUTO_LINKS:
-            col.prop(st, "max_links")
-        else:
-            col.prop(st, "links")
-        col.prop(st, "mode")
-        if st.mode == 'PSEUDO':
-            col.prop(st, "load_index")
-        col.prop(st, "motion")
-        col.prop(st, "p_max")
-        if ops.HAS_SKIN:
-            col.prop(st, "skin")
-        if io.has_scan(mesh):
-            col.prop(st, "frames_per_field")
-        col.prop(st, "reduce")
-        col.prop(st, "memory_budget")
+        col.prop(st, "auto_links")
+        col.prop(st, "max_links" if st.auto_links else "links")
+        greens = io.has_scan(mesh) and (io.scan_info(mesh) or {}).get("kind") == "greens"
+        # the fit options in their declared order (artdef_addon/options.py); Green's-only ones
+        # only for a Green's scan (or a pseudo mode already set), advanced ones last
+        decl = FitOptions.declaration()
+        for advanced in (False, True):
+            for name, (_, opt) in decl.items():
+                if name == "max_links" or opt.advanced != advanced:
+                    continue
+                if opt.greens_only and not greens and not (name == "mode" and st.mode == 'PSEUDO'):
+                    continue
+                col.prop(st, name)
+                if name == "mode" and st.mode == 'PSEUDO':
+                    col.prop(st, "load_index")
+            if not advanced and io.has_scan(mesh):
+                col.prop(st, "frames_per_field")
         if io.has_scan(mesh):
             _draw_estimate(box, mesh, st)
         row = box.row(align=True)
         row.scale_y = 1.3
         op = row.operator("artdef.fit", icon='PLAY')
-        op.links, op.mode, op.motion = st.links, st.mode, st.motion
-        op.p_max, op.load_index = st.p_max, st.load_index
-        op.frames_per_field = st.frames_per_field
-        op.auto_links = st.auto_links and ops.HAS_AUTO_LINKS
-        op.max_links = st.max_links
-        if ops.HAS_SKIN:
-            op.skin = st.skin
-        op.reduce, op.memory_budget = st.reduce, st.memory_budget
+        for name in SETTING_NAMES:
+            setattr(op, name, getattr(st, name))
         row = box.row(align=True)
         row.operator("artdef.preview_links", icon='COLOR').links = st.links
         row.operator("artdef.clear_rig", icon='TRASH')

@@ -1,14 +1,17 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Headless glue for ``python -m artdef_addon fit ... --blend/--glb/--png``.
+"""Headless Blender outputs for ``python -m artdef_addon fit ... --blend/--glb/--png``.
 
-The command line builds the rig through the *same operators as the UI*
-(``bpy.ops.artdef.import_scan`` then ``bpy.ops.artdef.fit``) in a fresh scene,
-then writes any of: the .blend, a glTF binary made by Blender's own exporter
-(skinned mesh, morph targets, animation) and a Workbench render.
+The command line fits once (the core's ``artdef_addon.fit``) and hands the result here: a fresh
+scene gets the scan's mesh and the rig built from that result by ``ops.apply_result`` (what the
+Fit operator does after its job), then any of the .blend, a glTF binary made by Blender's own
+exporter (skinned mesh, morph targets, animation) and a Workbench render are written.
 
-Works with the ``bpy`` module (``pip install bpy``) and inside Blender
-(``blender -b -P scripts/artdef_fit.py -- fit ...``).  ``bpy`` is imported
-only inside the functions, so the rest of ``artdef_addon`` stays bpy-free.
+This module belongs to the Blender layer. The core's command line loads it by its place in the
+extension only when Blender outputs are asked for (see ``artdef_addon.cli._blender_layer``), so
+it must also work loaded on its own from its file: no relative imports; the registered
+extension's modules are reached through :func:`ensure_registered`'s package name. Works with the
+``bpy`` module (``pip install bpy``) and inside Blender (``blender -b -P scripts/artdef_fit.py --
+fit ...``).
 """
 from __future__ import annotations
 
@@ -490,57 +493,30 @@ def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
 # Entry point used by artdef_addon.cli
 # --------------------------------------------------------------------------
 
-def fit_option_names() -> list[str]:
-    """The keyword arguments ``bpy.ops.artdef.fit`` accepts (its RNA properties)."""
+def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | None,
+                  png: str | None, *, load_index: int = 0, frames_per_field: int = 10) -> dict:
+    """Build the rig of ``result`` — the fit the command line already made of ``scan`` (read from
+    ``scan_path``) — in a fresh scene with :func:`operators.ops.apply_result`, the function the
+    Fit operator calls after its job, and write the requested outputs. Nothing is fitted here:
+    the .npz, the .blend and the .glb hold the same numbers. Returns ``{"blend"|"glb"|"png":
+    path}`` for those written."""
     bpy = _bpy()
-    props = bpy.ops.artdef.fit.get_rna_type().properties
-    return [p.identifier for p in props if p.identifier != "rna_type"]
+    import importlib  # noqa: PLC0415
 
-
-def fit_options(fit_kwargs: dict) -> dict:
-    """``fit_kwargs`` without the ``None`` values (the operator's defaults then
-    apply); RuntimeError naming the unknown keys and the accepted ones if a key
-    is not a property of ``bpy.ops.artdef.fit``."""
-    names = fit_option_names()
-    kwargs = {k: v for k, v in dict(fit_kwargs or {}).items() if v is not None}
-    unknown = sorted(k for k in kwargs if k not in names)
-    if unknown:
-        raise RuntimeError(f"artdef.fit has no option {', '.join(map(repr, unknown))} "
-                           f"(it accepts: {', '.join(sorted(names))})")
-    return kwargs
-
-
-def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
-                  glb: str | None, png: str | None) -> dict:
-    """Fit ``scan_path`` with ``bpy.ops.artdef.fit(**fit_kwargs)`` in a fresh
-    scene and write the requested outputs; return ``{"blend"|"glb"|"png": path}``
-    for those written.  ``fit_kwargs`` keys are the operator's property names
-    (``links``, ``mode``, ``motion``, ``p_max``, ``load_index``,
-    ``frames_per_field``, ``auto_links``, ``max_links``, ``skin``, ``reduce``,
-    ``memory_budget``); ``None`` values are left out, an unknown key is a
-    RuntimeError raised before any work."""
-    bpy = _bpy()
     scan_path = os.path.abspath(scan_path)
-
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-    ensure_registered()
-    fit_kwargs = fit_options(fit_kwargs)
+    module_name = ensure_registered()
+    ops = importlib.import_module(module_name + ".operators.ops")
+    io = importlib.import_module(module_name + ".operators.io")
 
-    result = bpy.ops.artdef.import_scan(filepath=scan_path)
-    if 'FINISHED' not in result:
-        raise RuntimeError(f"artdef.import_scan({scan_path!r}) returned {set(result)}")
-    mesh = bpy.context.view_layer.objects.active
-    if mesh is None or mesh.type != 'MESH':
-        raise RuntimeError("artdef.import_scan did not leave the imported mesh active")
-
+    mesh, _ = io.import_scan_file(bpy.context, scan_path)
+    stored = io.read_scan(mesh)
     with bpy.context.temp_override(active_object=mesh, object=mesh,
                                    selected_objects=[mesh], selected_editable_objects=[mesh]):
-        try:
-            result = bpy.ops.artdef.fit(**fit_kwargs)
-        except TypeError as ex:  # a value of the wrong type or not in an enum
-            raise RuntimeError(f"artdef.fit: {ex}") from ex
-    if 'FINISHED' not in result:
-        raise RuntimeError(f"artdef.fit({fit_kwargs}) returned {set(result)}")
+        ops.apply_result(bpy.context, mesh, result, scan, stored.tri_polygons, load_index=load_index,
+                         frames_per_field=frames_per_field,
+                         auto_links=bool(getattr(result, "link_reason", "")),
+                         seconds=float(result.timings.get("total", 0.0)))
     armature = _find_armature(mesh)
 
     written = {}
@@ -556,5 +532,5 @@ def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
     return written
 
 
-__all__ = ["build_outputs", "fit_options", "fit_option_names", "require_bpy", "ensure_registered",
+__all__ = ["build_outputs", "require_bpy", "ensure_registered",
            "save_blend", "export_glb", "render_png", "NEED_BPY"]
