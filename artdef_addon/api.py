@@ -10,12 +10,14 @@ scan's pairwise distances is its own business: the segmentation of a scan (its f
 clustering trees, the expensive O(T²) part) is kept for the next call on the same scan data and
 method settings, so a second fit or a preview with another link count does not recompute it.
 The cache holds the last :data:`CACHE_SIZE` segmentations; an entry is taken out while a call
-uses it, so two threads never share one.
+uses it, so two threads never share one, and put back only when the call succeeds.
 """
 from __future__ import annotations
 
 import hashlib
+import sys
 import threading
+import types
 from collections import OrderedDict
 
 import numpy as np
@@ -84,8 +86,12 @@ def _checkout(scan: Scan, o: FitOptions, progress):
     return key, seg
 
 
-def _checkin(key, seg) -> None:
+def _checkin(key, seg, keep: bool = True) -> None:
+    """Put a segmenter back after a call; one that a cancelled or failed call used is dropped
+    (it may hold half a merge), so a fresh one is made next time."""
     seg.progress = None                      # don't keep a caller's callback alive
+    if not keep:
+        return
     with _LOCK:
         _SEGMENTERS.pop(key, None)
         _SEGMENTERS[key] = seg
@@ -135,6 +141,7 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
     if o.mode == "pseudo" and scan.greens is None:
         raise ScanError("pseudo-articulation needs a Green's-matrix scan (one model per load column)")
     key, seg = _checkout(scan, o, progress)
+    seg_ok = False
     try:
         reason = ""
         result = None
@@ -152,8 +159,9 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
         result.reduced = bool(seg.reduced)
         result.estimate = seg.estimate
         result.groups = [list(g) for g in seg.groups]
+        seg_ok = True
     finally:
-        _checkin(key, seg)
+        _checkin(key, seg, keep=seg_ok)
     return result
 
 
@@ -165,10 +173,13 @@ def segment(scan: Scan, links: int, options: FitOptions | None = None, progress=
     scan = validate_scan(scan)
     o = o.resolved(scan.kind)
     key, seg = _checkout(scan, o, progress)
+    seg_ok = False
     try:
-        return seg.labels(int(links)), bool(seg.reduced), list(seg.notes)
+        labels = seg.labels(int(links))
+        seg_ok = True
+        return labels, bool(seg.reduced), list(seg.notes)
     finally:
-        _checkin(key, seg)
+        _checkin(key, seg, keep=seg_ok)
 
 
 def cached(scan: Scan, options: FitOptions | None = None):
@@ -180,3 +191,15 @@ def cached(scan: Scan, options: FitOptions | None = None):
     est, _ = plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind, o)
     with _LOCK:
         return _SEGMENTERS.get(_key(scan, o, est.reduced))
+
+
+class _FitModule(types.ModuleType):
+    """``artdef_addon.fit`` is the module of the fit's stages (:class:`Segmenter`,
+    :class:`FitResult`) and, called, the public :func:`fit` above: ``artdef_addon.fit(scan,
+    links="auto")`` — one name for scripts, without renaming a module other code imports."""
+
+    def __call__(self, scan, links, options=None, progress=None, **overrides):
+        return fit(scan, links, options, progress, **overrides)
+
+
+sys.modules[_fit.__name__].__class__ = _FitModule

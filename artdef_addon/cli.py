@@ -115,7 +115,7 @@ def _cmd_info(a) -> int:
     return 0
 
 
-def _blender_layer():
+def blender_layer():
     """The Blender layer's headless module (``operators/headless.py``), for --blend/--glb/--png.
 
     The core never imports bpy (not even lazily): the Blender layer does. This command line only
@@ -155,7 +155,7 @@ def _cmd_fit(a) -> int:
         raise _BadInput(str(exc)) from None
     headless = None
     if a.blend or a.glb or a.png:
-        headless = _blender_layer()
+        headless = blender_layer()
         try:
             headless.require_bpy()
         except RuntimeError as exc:

@@ -14,9 +14,7 @@ Stages (paper §5–§7, METHOD §2–§10):
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
-import types
 
 import numpy as np
 
@@ -393,34 +391,6 @@ def _select(fields: np.ndarray, idx) -> np.ndarray:
     return fields[idx]
 
 
-def _lsq_motions(x0, fields, faces, labels, L, corner_weights: bool = False):
-    """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, METHOD §6).
-
-    Each link vertex counts once, or with ``corner_weights`` once per face corner it is.
-    """
-    P = fields.shape[0]
-    R = np.zeros((P, L, 3, 3))
-    t = np.zeros((P, L, 3))
-    for l in range(L):
-        vid, count = np.unique(faces[labels == l], return_counts=True)
-        w = count / count.sum() if corner_weights else np.full(len(vid), 1.0 / len(vid))
-        a = x0[vid]
-        b = a[None] + fields[:, vid]
-        am = w @ a
-        bm = np.einsum("n,pnj->pj", w, b)
-        H = np.einsum("n,ni,pnj->pij", w, a - am, b - bm[:, None])
-        U, _, Vt = np.linalg.svd(H)
-        d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
-        D = np.zeros((P, 3, 3))
-        D[:, 0, 0] = 1
-        D[:, 1, 1] = 1
-        D[:, 2, 2] = d
-        Rl = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
-        R[:, l] = Rl
-        t[:, l] = bm - np.einsum("pij,j->pi", Rl, am)
-    return R, t
-
-
 #: a joint whose robust motions agree to this fraction of the bounding-box diagonal is exact
 #: (round-off, also of single-precision input: Blender meshes hold float32, about 1e-7 of the
 #: extent): the refined skin keeps it instead of refitting it to the decomposition's motions
@@ -440,7 +410,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     # link motions
     def link_motions(labels, medoids):
         if motion == "lsq":
-            return _lsq_motions(x0, fields, faces, labels, L)
+            return _joints.lsq_motions(x0, fields, faces, labels, L)
         R = np.tile(np.eye(3), (P, L, 1, 1))
         t = np.zeros((P, L, 3))
         col = {p: i for i, p in enumerate(used_fields)}
@@ -761,15 +731,3 @@ def load_result(path) -> FitResult:
             k += 1
     return res
 
-
-class _FitModule(types.ModuleType):
-    """``artdef_addon.fit`` is this module (the stages, :class:`Segmenter`, :class:`FitResult`)
-    and, called, the public entry point :func:`artdef_addon.api.fit`: ``artdef_addon.fit(scan,
-    links="auto")``. One name for scripts without renaming the module other code imports."""
-
-    def __call__(self, scan, links, options=None, progress=None, **overrides):
-        from .api import fit as public_fit
-        return public_fit(scan, links, options, progress, **overrides)
-
-
-sys.modules[__name__].__class__ = _FitModule

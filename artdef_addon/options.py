@@ -24,7 +24,12 @@ GB = 2 ** 30
 
 
 class OptionsError(ValueError):
-    """A fit setting out of range or not one of its choices; the message names it."""
+    """A fit setting out of range or not one of its choices; the message names it, ``option`` is
+    the field's name (a front end may show its label instead)."""
+
+    def __init__(self, message: str, option: str | None = None):
+        super().__init__(message)
+        self.option = option
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,21 +139,21 @@ class FitOptions:
                 continue
             if opt.choices:
                 if not isinstance(v, str) or v not in opt.values:
-                    raise OptionsError(f"{f.name} must be one of {', '.join(opt.values)}; got {v!r}")
+                    raise OptionsError(f"{f.name} must be one of {', '.join(opt.values)}; got {v!r}", f.name)
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise OptionsError(f"{f.name} must be a number; got {v!r}")
+                raise OptionsError(f"{f.name} must be a number; got {v!r}", f.name)
             if opt.type is int and int(v) != v:
-                raise OptionsError(f"{f.name} must be a whole number; got {v!r}")
+                raise OptionsError(f"{f.name} must be a whole number; got {v!r}", f.name)
             if not math.isfinite(v):
-                raise OptionsError(f"{f.name} must be finite; got {v!r}")
+                raise OptionsError(f"{f.name} must be finite; got {v!r}", f.name)
             low_ok = opt.min is None or (v > opt.min if opt.min_exclusive else v >= opt.min)
             if not low_ok:
                 rel = ">" if opt.min_exclusive else "at least"
                 raise OptionsError(f"{f.name} must be {rel} {opt.min:g}"
-                                   + (" (or off)" if opt.optional else "") + f"; got {v!r}")
+                                   + (" (or off)" if opt.optional else "") + f"; got {v!r}", f.name)
             if opt.max is not None and v > opt.max:
-                raise OptionsError(f"{f.name} must be at most {opt.max:g}; got {v!r}")
+                raise OptionsError(f"{f.name} must be at most {opt.max:g}; got {v!r}", f.name)
             object.__setattr__(self, f.name, opt.type(v))
 
     # ------------------------------------------------------------------ reading

@@ -468,7 +468,8 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
         try:
             options = options_from(self)
         except OptionsError as err:
-            self.report({'ERROR'}, str(err))
+            decl = FitOptions.declaration().get(err.option)
+            self.report({'ERROR'}, f"{decl[1].label}: {err}" if decl else str(err))
             return None
         try:
             stored = io.read_scan(obj)

@@ -5,7 +5,7 @@ import textwrap
 
 import bpy
 
-from ..artdef_addon.options import FitOptions
+from ..artdef_addon.options import GB, FitOptions
 from ..operators import io, ops, rig
 from ..operators.props import SETTING_NAMES
 
@@ -130,7 +130,7 @@ class ARTDEF_PT_main(bpy.types.Panel):
 
 
 def _gb(nbytes):
-    gb = nbytes / ops.GB
+    gb = nbytes / GB
     if gb < 0.095:
         return f"{gb:.2f}"
     if gb < 9.5:
@@ -162,7 +162,7 @@ def _draw_estimate(layout, mesh, st):
         col.label(text=f"reduced method on about {est.units:,} patches", icon='BLANK1')
     else:
         col.label(text=f"full method on {est.triangles:,} triangles", icon='BLANK1')
-    if est.memory_bytes > st.memory_budget * ops.GB:
+    if est.memory_bytes > st.memory_budget * GB:
         row = col.row()
         row.alert = True
         row.label(text="over the memory budget", icon='ERROR')

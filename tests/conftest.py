@@ -144,3 +144,15 @@ def clean_scene(installed_addon):
         _enable_addon(installed_addon)
     assert _addon_enabled(installed_addon)
     yield bpy.context.scene
+
+
+_TESTS = Path(__file__).resolve().parent
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark each test by its layer: ``core`` under tests/core (no Blender), ``blender`` under
+    tests/blender (markers registered in pytest.ini)."""
+    for item in items:
+        parts = Path(str(item.path)).resolve().relative_to(_TESTS).parts
+        if parts and parts[0] in ("core", "blender"):
+            item.add_marker(getattr(pytest.mark, parts[0]))

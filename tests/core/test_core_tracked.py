@@ -7,7 +7,7 @@ from scipy.optimize import minimize
 
 from artdef_addon import fit as F, linkcount, quality, samples, scan as S, skinning
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).parent.parent / "data"
 
 
 def test_simplex_least_squares_is_exact():
