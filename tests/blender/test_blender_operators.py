@@ -1406,6 +1406,34 @@ def test_new_sources_undo(clean_scene, tube_poses, tmp_path):
 # core options: automatic link count, skin weights
 # --------------------------------------------------------------------------
 
+def test_fit_properties_are_the_cores_declaration(pkg):
+    """The Fit operator's and the object's settings are made from FitOptions (one declaration):
+    same defaults, choices (upper-cased ids), bounds and descriptions; the panel's Fit button
+    copies every one of them."""
+    options = importlib.import_module(pkg.scan.__name__.rsplit(".", 1)[0] + ".options")
+    decl = options.FitOptions.declaration()
+    for rna in (bpy.ops.artdef.fit.get_rna_type(), bpy.types.Object.bl_rna.properties["artdef"].fixed_type):
+        props = rna.properties
+        for name, (default, opt) in decl.items():
+            p = props[name]
+            assert p.name == opt.label and p.description.startswith(opt.description), name
+            if opt.choices:
+                assert [i.identifier for i in p.enum_items] == [v.upper() for v in opt.values]
+                assert [i.description for i in p.enum_items] == [c.description for c in opt.choices]
+                assert p.default == default.upper()
+            else:
+                assert p.default == pytest.approx(0 if default is None else default, rel=1e-6), name
+                assert p.hard_min == pytest.approx(0 if opt.optional else opt.min, rel=1e-6), name
+    st = bpy.types.Object.bl_rna.properties["artdef"].fixed_type.properties
+    for name in pkg.ops.SETTING_NAMES:
+        assert name in bpy.ops.artdef.fit.get_rna_type().properties and name in st
+    # a value the declaration refuses is reported with the setting's label, nothing is made
+    assert pkg.ops.options_from(type("S", (), dict(
+        mode='GLOBAL', motion='LSQ', p_max=0.0, max_links=4, memory_budget=1.0, reduce='ON',
+        strategy='PAPER', skin='SEAM'))()) == options.FitOptions(
+        motion="lsq", max_links=4, memory_budget=1.0, reduce="on", strategy="paper", skin="seam")
+
+
 def test_fit_skin_option(clean_scene, pkg, sample_files):
     ref = pkg.scan.load_scan(sample_files["rod"])
     obj = import_scan(sample_files["rod"])
