@@ -435,7 +435,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
             R, t = link_motions(labels, medoids)
     refined = Rs = ts = None
     if skin == "refined":
-        # the skin decomposition before the joints (issue 5). Where a short link is blended with
+        # the skin decomposition before the joints. Where a short link is blended with
         # its neighbours on every vertex (a finger's first segment) its robust motion is itself a
         # blend, and a joint fitted to it lands off the true centre; the decomposition's link
         # motions are the ones whose blend explains those vertices, so joints are fitted to them

@@ -326,7 +326,7 @@ def _argmax_owned(w, faces, labels, k, units):
 
 def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
                     R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None):
-    """Give every face to the link that dominates its skin (an addition to the paper, issue 5).
+    """Give every face to the link that dominates its skin (an addition to the paper).
 
     On a smoothly skinned character the motion of a triangle between two bones is a blend of
     theirs, so the clustering (and the link's robust motion, a medoid) can sit anywhere along the

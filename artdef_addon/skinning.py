@@ -379,7 +379,7 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
                     R: np.ndarray, t: np.ndarray, max_influences: int = 4,
                     rings: int = 3, ground=None, radius: float | None = None,
                     pool: int | None = None) -> np.ndarray:
-    """Per-vertex convex skin weights fitted by least squares over all fields (issue 5; SSDR-style).
+    """Per-vertex convex skin weights fitted by least squares over all fields (SSDR-style).
 
     For each vertex v, with candidate links C(v) — the links of the triangles within ``rings``
     rings of v (or the ``radius``, :func:`candidate_links`), at most ``pool`` (default ``POOL``) of

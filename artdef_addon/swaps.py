@@ -1,4 +1,4 @@
-"""Swap links: drop the least useful link, re-seed it where the skin fits worst (issue 5).
+"""Swap links: drop the least useful link, re-seed it where the skin fits worst.
 
 An addition to the paper for tracked scans. The greedy merge of §5.2 never revisits a decision,
 so with a fixed link count a smoothly skinned character can end with a link spent on a sliver of
