@@ -25,7 +25,7 @@ from . import merge as _merge
 from . import model as _model
 from . import patches as _patches
 from . import swaps as _swaps
-from .metric import _workers, field_features, rest_geometry
+from .metric import worker_count, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights
 
@@ -210,7 +210,7 @@ class Segmenter:
             # two fields at a time on two threads (numpy's element-wise work releases the GIL);
             # cancelling is checked here, on the calling thread
             from concurrent.futures import ThreadPoolExecutor
-            with ThreadPoolExecutor(min(2, _workers())) as ex:
+            with ThreadPoolExecutor(min(2, worker_count())) as ex:
                 pending = []
                 for p in range(P):
                     pending.append(ex.submit(neighbours, p))
@@ -275,7 +275,7 @@ class Segmenter:
         try:
             return _merge.merge_clusters(feats, w, init, k, progress=cb, unit_size=self.unit_size,
                                          cache=self._cache(), tag=_merge.member_key(np.asarray(fields)))
-        except _merge._Cancel:
+        except _merge.MergeCancelled:
             raise FitCancelled(f"cancelled during {stage}") from None
 
     def _cache(self):

@@ -456,11 +456,11 @@ def alternate(vertices, fields, faces, labels, R, t, iterations: int = 30,
     fraction ``tol``. Returns ``(weights, R, t)``; the error never increases from one step to
     the next (each step is an exact minimiser given the other).
     """
-    return _alternate(vertices, fields, faces, labels, R, t, iterations, tol, radius, **kw)[:3]
+    return alternate_scored(vertices, fields, faces, labels, R, t, iterations, tol, radius, **kw)[:3]
 
 
-def _alternate(vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS,
-               details=False, **kw):
+def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS,
+                     details=False, **kw):
     """:func:`alternate` returning ``(weights, R, t, error)``: error is the total squared
     articulation error Σ_p Σ_v ‖x̂ − x‖² of the returned skin. With ``details`` a fifth value
     holds :func:`_refine`'s details of the returned skin (what :mod:`swaps` prices links from)."""

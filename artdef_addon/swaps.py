@@ -82,14 +82,14 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
     weights and the labels the swaps left (each face's link before the caller re-labels by skin).
     With ``error`` the decomposition's squared error E is appended.
     """
-    from .skinning import _alternate
+    from .skinning import alternate_scored
     labels = np.array(labels, copy=True)
     L = R.shape[1]
     P = fields.shape[0]
     units = np.arange(len(labels)) if units is None else np.asarray(units)
     max_swaps = L if max_swaps is None else max_swaps
 
-    w, R, t, e, info = _alternate(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS, details=True)
+    w, R, t, e, info = alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS, details=True)
     mean = fields.mean(axis=0)
     spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
     if e <= EXACT ** 2 * spread:      # the skin already explains the fields: nothing to swap
@@ -132,7 +132,7 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
             R1, t1 = R.copy(), t.copy()
             Rr, tr = lsq_motions(x0, fields, faces[ring], np.zeros(len(ring), dtype=np.int64), 1, corner_weights=True)
             R1[:, l], t1[:, l] = Rr[:, 0], tr[:, 0]
-            w1, R1, t1, e1, info1 = _alternate(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS,
+            w1, R1, t1, e1, info1 = alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS,
                                                details=True)
             if e1 < (1.0 - MIN_GAIN) * e:
                 labels, w, R, t, e, info = new, w1, R1, t1, e1, info1

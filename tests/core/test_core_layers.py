@@ -193,3 +193,25 @@ def test_cancelled_fit_keeps_no_segmentation():
         artdef_addon.fit(scan, 3, progress=lambda stage, f: stage == "merge")
     assert api.cached(scan) is None
     assert artdef_addon.fit(scan, 3).n_links == 3 and api.cached(scan) is not None
+
+
+def test_no_private_name_is_used_outside_its_core_module():
+    """``from .m import _x`` or ``m._x`` between core modules: a private helper used elsewhere
+    should be public (named, documented) or stay inside its module."""
+    modules = {p.stem for p in CORE.glob("*.py")}
+    found = []
+    for path in sorted(CORE.glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        aliases = {}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                for a in node.names:
+                    if node.module is None and a.name in modules:
+                        aliases[a.asname or a.name] = a.name
+                    elif a.name.startswith("_") and not a.name.startswith("__"):
+                        found.append(f"{path.stem} imports {node.module}.{a.name}")
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                    and node.value.id in aliases and node.attr.startswith("_") and not node.attr.startswith("__")):
+                found.append(f"{path.stem} uses {aliases[node.value.id]}.{node.attr}")
+    assert not found, found
