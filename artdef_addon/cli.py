@@ -39,7 +39,7 @@ def _parser() -> argparse.ArgumentParser:
                                             "(Lang, Pai & Seidel, GI 2003).")
     sub = p.add_subparsers(dest="command", required=True)
     f = sub.add_parser("fit", help="segment a scan into links, fit joints, tree and model")
-    f.add_argument("scan", help="scan .npz (format v1, see README)")
+    f.add_argument("scan", help="scan .npz (format v1, see docs/formats.md)")
     f.add_argument("--links", required=True,
                    help="number of links, or 'auto' to choose it from the data")
     _option_arguments(f)

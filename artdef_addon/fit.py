@@ -128,7 +128,7 @@ class Segmenter:
     * ``"summed"`` — one average-linkage tree over Σ_p w_p ε_p, the fields' distances
       on the unit scale of §5.3 summed, cut to k, split into connected pieces and merged on Λ as
       above. One linkage instead of P, streamed over fields (memory: one condensed matrix), and
-      measurably better on smoothly skinned characters (README, "deviations").
+      measurably better on smoothly skinned characters (docs/method.md, "Deviations from the paper").
 
     ``"auto"`` (default) uses the paper's two levels for Green's scans — there a field that only
     dents the surface near its load would dominate a plain sum — and the sum for tracked scans.
@@ -680,7 +680,7 @@ _ARRAYS = ("face_labels", "parents", "joints", "joint_errors", "heads", "tails",
 
 
 def save_result(path, result: FitResult) -> None:
-    """Write a result ``.npz`` (see README, "Result file")."""
+    """Write a result ``.npz`` (see docs/formats.md, "Result file")."""
     out = {k: getattr(result, k) for k in _ARRAYS}
     out.update(rms_articulation=np.float64(result.rms_articulation), rms_total=np.float64(result.rms_total),
                articulation_error_percent=np.float64(result.articulation_error_percent),

@@ -195,7 +195,7 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
     moves only when the new side holds ``margin`` times the weight of its current side (so
     smoothly blended regions, where the medoid motions are themselves blended, stay as the
     clustering put them). Triangles in ``fixed`` (the links' medoids) never move, so no link
-    empties. Iterated until no seam moves. An addition to the paper (README, "deviations").
+    empties. Iterated until no seam moves. An addition to the paper (docs/method.md, "Deviations from the paper").
     """
     labels = labels.copy()
     k = R.shape[1]
