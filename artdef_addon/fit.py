@@ -26,13 +26,11 @@ from . import model as _model
 from . import patches as _patches
 from . import swaps as _swaps
 from .metric import worker_count, field_features, rest_geometry
+from .options import FitOptions
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights
 
-MODES = ("global", "pseudo")
-MOTIONS = ("robust", "lsq")
 STRATEGIES = ("summed", "paper")  # "auto": paper for Green's scans, summed for tracked ones
-SKINS = ("seam", "refined")        # "auto": refined for tracked scans, seam for Green's scans
 
 
 class FitCancelled(Exception):
@@ -626,14 +624,7 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     least squares over all fields to the rig's link motions); ``"auto"`` refines for tracked
     scans and keeps seam weights for Green's scans.
     """
-    if mode not in MODES:
-        raise ScanError(f"mode must be one of {MODES}, got {mode!r}")
-    if motion not in MOTIONS:
-        raise ScanError(f"motion must be one of {MOTIONS}, got {motion!r}")
-    if p_max is not None and not (np.isfinite(p_max) and p_max > 1):
-        raise ScanError(f"p_max must be a number greater than 1 (or off), got {p_max}")
-    if skin not in SKINS + ("auto",):
-        raise ScanError(f"skin must be one of {SKINS + ('auto',)}, got {skin!r}")
+    FitOptions(mode=mode, motion=motion, p_max=p_max, skin=skin)   # the one check of the settings
     if mode == "pseudo" and scan.greens is None:
         raise ScanError("pseudo-articulation needs a Green's-matrix scan (one model per load column)")
     try:

@@ -20,12 +20,15 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from .scan import ScanError
+
 GB = 2 ** 30
 
 
-class OptionsError(ValueError):
-    """A fit setting out of range or not one of its choices; the message names it, ``option`` is
-    the field's name (a front end may show its label instead)."""
+class OptionsError(ScanError):
+    """A fit setting out of range or not one of its choices: bad input like a bad scan (every
+    front end reports a :class:`ScanError` in one line), the message names it, ``option`` is the
+    field's name (a front end may show its label instead)."""
 
     def __init__(self, message: str, option: str | None = None):
         super().__init__(message)
@@ -149,7 +152,7 @@ class FitOptions:
                 raise OptionsError(f"{f.name} must be finite; got {v!r}", f.name)
             low_ok = opt.min is None or (v > opt.min if opt.min_exclusive else v >= opt.min)
             if not low_ok:
-                rel = ">" if opt.min_exclusive else "at least"
+                rel = "a number greater than" if opt.min_exclusive else "at least"
                 raise OptionsError(f"{f.name} must be {rel} {opt.min:g}"
                                    + (" (or off)" if opt.optional else "") + f"; got {v!r}", f.name)
             if opt.max is not None and v > opt.max:
