@@ -26,11 +26,6 @@ PROGRESS_HOOKS = []
 #: scripting and tests — not saved in the .blend).
 LAST_RESULTS = {}
 
-#: Fit jobs started in a worker thread (interactive path); a cancelled one may
-#: still be winding down when the next fit or preview starts.
-_THREAD_JOBS = []
-
-
 def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0):
     """What a fit with these settings will do, from counts only (the core's :func:`api.plan`):
     ``(estimate, reduce_arg)``."""
@@ -264,7 +259,6 @@ class _FitJob:
 
     def start_thread(self):
         self.thread = threading.Thread(target=self.run, name="artdef-fit", daemon=True)
-        _THREAD_JOBS.append(self)
         self.thread.start()
 
 
@@ -587,7 +581,6 @@ class _PreviewJob:
 
     def start_thread(self):
         self.thread = threading.Thread(target=self.run, name="artdef-preview", daemon=True)
-        _THREAD_JOBS.append(self)
         self.thread.start()
 
 
