@@ -105,6 +105,17 @@ def clear_cache() -> None:
         _SEGMENTERS.clear()
 
 
+def _as_scan(scan) -> Scan:
+    """``scan`` as this core's :class:`Scan`; a scan made by another copy of the core (the
+    installed extension's, e.g. sampled in Blender for the command line) is taken by its fields."""
+    if isinstance(scan, Scan):
+        return scan
+    names = ("vertices", "faces", "greens", "displacements", "load_vertices", "support_vertices", "probe_load")
+    if not all(hasattr(scan, n) for n in names):
+        raise ScanError(f"scan must be an artdef_addon Scan (see load_scan), got {type(scan).__name__}")
+    return Scan(**{n: getattr(scan, n) for n in names})
+
+
 def _options(options, overrides) -> FitOptions:
     if options is None:
         options = FitOptions()
@@ -129,8 +140,7 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
     residual ``(P, N, 3)`` … and ``save(path)`` / ``FitResult.load(path)``.
     """
     o = _options(options, overrides)
-    if not isinstance(scan, Scan):
-        raise ScanError(f"scan must be an artdef_addon Scan (see load_scan), got {type(scan).__name__}")
+    scan = _as_scan(scan)
     auto = isinstance(links, str) and links.strip().lower() == "auto"
     if not auto:
         if isinstance(links, bool) or not isinstance(links, (int, np.integer)):
@@ -148,6 +158,7 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
         if auto:
             choice = _linkcount.choose_links(seg, max_links=o.max_links, progress=progress)
             links, reason = int(choice.links), str(choice.reason)
+            errors = [float(e) for e in choice.errors]
             result = choice.reusable(o.mode, o.motion, o.skin)   # the chooser fitted this count already
             if result is not None:
                 result.p_max = o.p_max
@@ -155,6 +166,7 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
             result = _fit.fit(scan, links, mode=o.mode, motion=o.motion, p_max=o.p_max,
                               progress=progress, segmenter=seg, skin=o.skin)
         result.link_reason = reason
+        result.link_errors = errors if auto else []
         result.options = requested     # as asked ("auto" kept); o.resolved(kind) is what ran
         result.reduced = bool(seg.reduced)
         result.estimate = seg.estimate
@@ -170,7 +182,7 @@ def segment(scan: Scan, links: int, options: FitOptions | None = None, progress=
     triangle for ``links`` links, whether the reduced method ran and the core's notes — from the
     same segmentation a :func:`fit` with these options makes (and keeps)."""
     o = _options(options, {})
-    scan = validate_scan(scan)
+    scan = validate_scan(_as_scan(scan))
     o = o.resolved(scan.kind)
     key, seg = _checkout(scan, o, progress)
     seg_ok = False

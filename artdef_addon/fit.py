@@ -68,6 +68,7 @@ class FitResult:
     pseudo: list | None = None
     notes: list = dataclasses.field(default_factory=list)
     link_reason: str = ""            # why ``links="auto"`` chose this count (empty: count given)
+    link_errors: list = dataclasses.field(default_factory=list)  # links auto: e(k) %, k = 1, 2, …
     options: object = None           # the FitOptions it was asked with ("auto" kept), when known
     reduced: bool = False            # the reduced method on patches ran
     estimate: object = None          # the cost.Estimate of the method that ran

@@ -99,6 +99,7 @@ class FitOptions:
         description="Links auto: the largest link count tried")
     memory_budget: float = _field(
         2.0, label="Memory Budget", type=float, unit="GB", min=0.001, soft_min=0.1, soft_max=64.0,
+        advanced=True,
         description="Most memory the fit may use, in GB (2^30 bytes). With Reduced Method 'auto' a "
                     "scan whose full method would need more switches to the reduced method on "
                     "patches instead of running out of memory; it also sets how many patches the "
@@ -132,7 +133,8 @@ class FitOptions:
                  Choice("seam", "Seam", "Weights blended across the seams between links (paper)"),
                  Choice("refined", "Refined", "Per-vertex convex weights (at most 4 nearby links) "
                                               "solved by least squares over all fields: reproduces "
-                                              "the capture closely with few bones")))
+                                              "the capture closely with few bones")),
+        advanced=True)
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

@@ -196,107 +196,27 @@ def save_blend(path: str) -> str:
     return path
 
 
-def _driven_bone_channels(armature):
-    """(data path, index) of every driven pose-bone channel: on a Green's rig,
-    the load helper bones' rotations and offsets (none on other rigs)."""
-    ad = armature.animation_data
-    if ad is None:
-        return []
-    return [(fc.data_path, fc.array_index) for fc in ad.drivers if fc.data_path.startswith("pose.bones[")]
-
-
-def _bake_driven_pose(bpy, armature):
-    """Key the driven pose-bone channels (a Green's rig: the load helper bones,
-    driven by the load empties, which the load sweep animates) at every frame
-    of the scene into a new action on the armature, so Blender's glTF exporter
-    samples the joints (it exports an armature's animation only from its
-    action; a driven shape key is baked inside that armature action too).  The
-    helpers are not exported (not deforming), but the exporter samples every
-    joint's evaluated pose, which follows its helper through the link bone's
-    constraint.  The drivers stay: they give the same values the keys hold.
-    An animator's action on the rig (keys on the link bones, on top of the
-    loads) is copied into the bake, so the export carries both.
-    Returns what :func:`_unbake` needs."""
-    scene = bpy.context.scene
-    ad = armature.animation_data
-    saved = (ad.action, scene.frame_current)
-    channels = _driven_bone_channels(armature)
-    if ad.action is not None:
-        action = ad.action.copy()
-        action.name = f"{armature.name}_glTF_bake"
-    else:
-        action = bpy.data.actions.new(f"{armature.name}_glTF_bake")
-    ad.action = action
-    for frame in range(scene.frame_start, scene.frame_end + 1):
-        scene.frame_set(frame)
-        for path, index in channels:
-            armature.keyframe_insert(path, index=index, frame=frame)
-    return armature, action, saved
-
-
-def _unbake(bpy, baked):
-    armature, action, (old_action, frame) = baked
-    armature.animation_data.action = old_action
-    bpy.data.actions.remove(action)
-    bpy.context.scene.frame_set(frame)
-
-
-def export_glb(path: str, mesh, armature) -> str:
-    """Skinned mesh (one joint per deforming bone, inverse bind matrices),
-    shape keys as morph targets, and the scene's animation, as .glb.
-
-    A rig driven by load empties (Green's scans) has its driven pose baked
-    into a temporary action for the export only (a copy of the animator's
-    action if the link bones were keyed; removed again afterwards, the live
-    drivers and the animator's action are never touched), so the glTF
-    animation moves the joints and the morph weights through the load sweep
-    over the scene's frame range."""
+def export_rig(path: str, mesh, fmt: str | None = None) -> str:
+    """Write the rig of ``mesh`` with ``bpy.ops.artdef.export_rig`` (the Export
+    Rig operator of the UI: only the fitted mesh and its armature, one clip at
+    the replay's frames, no debug colours, at most 4 influences, a Green's rig
+    baked); ``fmt`` 'GLB' | 'GLTF_SEPARATE' | 'FBX' (default: from the name)."""
     bpy = _bpy()
+    ensure_registered()
     path = _abs(path)
-    baked = None
-    if armature is not None:
-        _parent_keep_transform(mesh, armature)
-        if _driven_bone_channels(armature):  # a Green's rig: driven by its load empties
-            baked = _bake_driven_pose(bpy, armature)
-    try:
-        _export_gltf(bpy, path, mesh, armature)
-    finally:
-        if baked is not None:
-            _unbake(bpy, baked)
-    if not os.path.isfile(path):
-        raise RuntimeError(f"glTF exporter wrote nothing to {path}")
+    kwargs = {"filepath": path}
+    if fmt is not None:
+        kwargs["export_format"] = fmt
+    with bpy.context.temp_override(active_object=mesh, object=mesh, selected_objects=[mesh]):
+        result = bpy.ops.artdef.export_rig(**kwargs)
+    if 'FINISHED' not in result or not os.path.isfile(path):
+        raise RuntimeError(f"artdef.export_rig could not write {path}")
     return path
 
 
-def _export_gltf(bpy, path, mesh, armature):
-    with bpy.context.temp_override(active_object=mesh, object=mesh,
-                                   selected_objects=[o for o in (mesh, armature) if o]):
-        bpy.ops.export_scene.gltf(
-            filepath=path,
-            check_existing=False,
-            export_format='GLB',
-            use_selection=False,
-            export_yup=True,
-            export_apply=False,            # keep the skin: no modifier baking
-            export_skins=True,
-            export_def_bones=True,         # joints = deforming bones = links
-            export_rest_position_armature=True,
-            export_armature_object_remove=True,  # validator: no NODE_SKINNED_MESH_NON_ROOT
-            export_morph=True,
-            export_morph_normal=True,
-            export_morph_animation=True,
-            export_animations=True,
-            export_force_sampling=True,    # drivers -> sampled morph weights
-            # The armature's action and the mesh's shape-key action merged
-            # into ONE glTF animation, so viewers play joints and morph
-            # weights together (ACTIONS would give two unsynchronised ones).
-            export_animation_mode='ACTIVE_ACTIONS',
-            export_nla_strips_merged_animation_name="ArtDef",
-            export_vertex_color='ACTIVE',  # link colours as COLOR_0
-            export_cameras=False,
-            export_lights=False,
-            export_extras=False,
-        )
+def export_glb(path: str, mesh, armature=None) -> str:
+    """The rig of ``mesh`` as .glb (see :func:`export_rig`)."""
+    return export_rig(path, mesh, "GLB")
 
 
 # --------------------------------------------------------------------------
@@ -493,23 +413,67 @@ def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
 # Entry point used by artdef_addon.cli
 # --------------------------------------------------------------------------
 
-def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | None,
-                  png: str | None, *, load_index: int = 0, frames_per_field: int = 10) -> dict:
-    """Build the rig of ``result`` — the fit the command line already made of ``scan`` (read from
-    ``scan_path``) — in a fresh scene with :func:`operators.ops.apply_result`, the function the
-    Fit operator calls after its job, and write the requested outputs. Nothing is fitted here:
-    the .npz, the .blend and the .glb hold the same numbers. Returns ``{"blend"|"glb"|"png":
-    path}`` for those written."""
+def scan_from_file(path: str, frames=None, clips=()):
+    """Import an animated file or an OBJ/PLY sequence in a fresh scene and
+    sample it into a tracked scan with ``bpy.ops.artdef.fields_from_file`` (the
+    Fields from Animation code, over the file's own frames unless ``frames`` =
+    (start, end, step)).  ``clips``: more files or sequences of the same mesh,
+    each one clip: the scans are merged, so the fit makes one rig with one
+    action per clip (named after the files).  Returns ``(mesh object holding
+    the scan, Scan)``; RuntimeError with a one-line reason on failure."""
     bpy = _bpy()
     import importlib  # noqa: PLC0415
 
-    scan_path = os.path.abspath(scan_path)
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    module_name = ensure_registered()
+    kwargs = {"filepath": os.path.abspath(path)}
+    if frames is not None:
+        kwargs.update(frame_start=frames[0], frame_end=frames[1], frame_step=frames[2])
+    objects = []
+    for i, p in enumerate([path, *clips]):
+        kw = dict(kwargs, filepath=os.path.abspath(p)) if i == 0 else {"filepath": os.path.abspath(p)}
+        messages = []
+        try:
+            result = bpy.ops.artdef.fields_from_file(**kw)
+        except RuntimeError as ex:  # the operator's ERROR report
+            messages.append(str(ex).strip().splitlines()[-1].replace("Error: ", ""))
+            result = {'CANCELLED'}
+        if 'FINISHED' not in result:
+            raise RuntimeError(messages[0] if messages else f"cannot sample {p}")
+        objects.append(bpy.context.view_layer.objects.active)
+    if clips:
+        animfile = importlib.import_module(module_name + ".operators.animfile")
+        names = [animfile.clip_name(p) for p in [path, *clips]]
+        try:
+            animfile.merge_clip_scans(objects, names)
+        except ValueError as ex:
+            raise RuntimeError(str(ex)) from None
+    mesh = objects[0]
+    bpy.context.view_layer.objects.active = mesh
+    io = importlib.import_module(module_name + ".operators.io")
+    return mesh, io.read_scan(mesh).scan
+
+
+def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | None,
+                  png: str | None, *, fbx: str | None = None, mesh=None, rotation_only: bool = False,
+                  load_index: int = 0, frames_per_field: int = 10) -> dict:
+    """Build the rig of ``result`` — the fit the command line already made of ``scan`` (read from
+    ``scan_path``) — with :func:`operators.ops.apply_result`, the function the Fit operator calls
+    after its job, and write the requested outputs. ``mesh``: the object holding the scan when it
+    was sampled from an animated file (:func:`scan_from_file`); else a fresh scene gets the scan
+    file's mesh. Nothing is fitted here: the .npz, the .blend and the exports hold the same
+    numbers. Returns ``{"blend"|"glb"|"fbx"|"png": path}`` for those written (and
+    ``"rotation_only_error"``: (max, rms) % of the diagonal, with ``rotation_only``)."""
+    bpy = _bpy()
+    import importlib  # noqa: PLC0415
+
+    if mesh is None:  # a scan file: a fresh scene
+        bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     module_name = ensure_registered()
     ops = importlib.import_module(module_name + ".operators.ops")
     io = importlib.import_module(module_name + ".operators.io")
-
-    mesh, _ = io.import_scan_file(bpy.context, scan_path)
+    if mesh is None:
+        mesh, _ = io.import_scan_file(bpy.context, os.path.abspath(scan_path))
     stored = io.read_scan(mesh)
     with bpy.context.temp_override(active_object=mesh, object=mesh,
                                    selected_objects=[mesh], selected_editable_objects=[mesh]):
@@ -518,19 +482,29 @@ def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | No
                          auto_links=bool(getattr(result, "link_reason", "")),
                          seconds=float(result.timings.get("total", 0.0)))
     armature = _find_armature(mesh)
+    if armature is not None:  # bones an animator can read: source joint names, else root-first
+        with bpy.context.temp_override(active_object=mesh, object=mesh, selected_objects=[mesh]):
+            bpy.ops.artdef.name_bones(scheme='AUTO')
+            if rotation_only:
+                if 'FINISHED' not in bpy.ops.artdef.rotation_only():
+                    raise RuntimeError("--rotation-only: the rig has no action (Green's rigs "
+                                       "are driven by their loads)")
 
     written = {}
-    if glb is not None and armature is not None:
-        # Parent before saving, so the .blend and the .glb hold the same rig.
-        _parent_keep_transform(mesh, armature)
+    if rotation_only and mesh.data.get("artdef_rotation_only_error") is not None:
+        worst, rms = mesh.data["artdef_rotation_only_error"]
+        written["rotation_only_error"] = (float(worst), float(rms))
     if blend is not None:
         written["blend"] = save_blend(blend)
     if glb is not None:
-        written["glb"] = export_glb(glb, mesh, armature)
+        written["glb"] = export_rig(glb, mesh, "GLB")
+    if fbx is not None:
+        written["fbx"] = export_rig(fbx, mesh, "FBX")
     if png is not None:
         written["png"] = render_png(png, mesh, armature)
     return written
 
 
-__all__ = ["build_outputs", "require_bpy", "ensure_registered",
+__all__ = ["build_outputs", "scan_from_file", "export_rig", "require_bpy",
+           "ensure_registered",
            "save_blend", "export_glb", "render_png", "NEED_BPY"]

@@ -345,6 +345,7 @@ def store_summary(obj, result, model, scan, vertex_residual, *, load_index=0, fr
     if st.fit_replay:
         st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
     st.fit_link_reason = result.link_reason
+    obj["artdef_link_errors"] = [float(e) for e in (result.link_errors or [])]  # panel's curve
     st.fit_skin = str(getattr(model, "skin", "") or "")
     st.fit_notes = "\n".join(str(n) for n in (result.notes or []))
     st.fit_reduced = bool(result.reduced)

@@ -297,13 +297,18 @@ def has_rig(obj):
 
 def _remove_object(ob):
     data = ob.data
-    action = ob.animation_data.action if ob.animation_data else None
+    ad = ob.animation_data
+    actions = [ad.action] if ad is not None and ad.action is not None else []
+    if ad is not None:  # a several-clip replay's NLA tracks
+        actions += [s.action for t in ad.nla_tracks for s in t.strips
+                    if s.action is not None and s.action not in actions]
     bpy.data.objects.remove(ob, do_unlink=True)
     if data is not None and data.users == 0:
         if isinstance(data, bpy.types.Armature):
             bpy.data.armatures.remove(data)
-    if action is not None and action.users == 0 and action.get("artdef_made"):
-        bpy.data.actions.remove(action)
+    for action in actions:
+        if action.users == 0 and action.get("artdef_made"):
+            bpy.data.actions.remove(action)
 
 
 def _restore_frame_range(st, scene):
@@ -314,6 +319,21 @@ def _restore_frame_range(st, scene):
             scene.frame_start = start
             scene.frame_end = max(end, start)
     st.set_frame_range = False
+
+
+def _remove_clip_tracks(keys):
+    """NLA tracks of a several-clip replay on the shape keys (their actions are
+    ArtDef's), and those actions; the armature's go with the armature."""
+    ad = keys.animation_data if keys is not None else None
+    if ad is None:
+        return
+    for track in list(ad.nla_tracks):
+        actions = [s.action for s in track.strips]
+        if actions and all(a is not None and a.get("artdef_made") for a in actions):
+            ad.nla_tracks.remove(track)
+            for a in actions:
+                if a.users == 0:
+                    bpy.data.actions.remove(a)
 
 
 def clear_rig(obj, scene=None):
@@ -355,6 +375,7 @@ def clear_rig(obj, scene=None):
             obj.vertex_groups.remove(vg)
     st.groups.clear()
     keys = mesh.shape_keys
+    _remove_clip_tracks(keys)
     if keys is not None:
         ad = keys.animation_data
         if ad is not None:
@@ -621,7 +642,8 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
         end = _build_load_sweep(empties, float(result.probe_load), frames_per_field)
     else:
         end = _build_replay(obj, arm, result, bone_names, key_names, frames_per_field)
-    _set_frame_range(st, context.scene, end)
+    if end is not None:  # None: the replay keeps the source's frames, the scene's range stays
+        _set_frame_range(st, context.scene, end)
     return arm
 
 
@@ -720,41 +742,59 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
 
 
 def _build_replay(obj, arm, result, bone_names, key_names, frames_per_field=10):
-    """Actions replaying the fields: rest at frame 0, field p at (p+1)·frames_per_field.
+    """Actions replaying the fields: rest at frame 0, field p at (p+1)·frames_per_field,
+    or, for a scan sampled from an animation or a sequence, every field at its
+    source frame (:func:`.timing.clip_timings`).  A scan of several clips gets
+    one armature action and one shape-key action per clip, each also in a
+    muted NLA track named after the clip (the glTF exporter's NLA Tracks mode
+    writes one animation per track name); the first clip is the active one.
 
-    Returns the last frame of the replay.
+    Returns the last frame of the replay, or None when the replay keeps the
+    source's timing (the scene's frame range is then left alone).
     """
+    from .timing import clip_timings
     angles = np.asarray(result.angles, dtype=np.float64)
     locations = np.asarray(result.locations, dtype=np.float64)
     p = angles.shape[0]
-    step = max(int(frames_per_field), 1)
-    frames = np.arange(p + 1, dtype=np.float64) * step
-    end = int(p * step)
-    action, new_fcurve = _new_action(arm, f"{arm.name}_replay")
-    action["artdef_made"] = True
-    action.use_frame_range = True
-    action.frame_start, action.frame_end = 0, end
-    for l, bname in enumerate(bone_names):
-        base = f'pose.bones["{bname}"]'
-        for j in range(3):
-            _key_curve(new_fcurve(f"{base}.rotation_euler", j, bname), frames,
-                       np.r_[0.0, angles[:, l, j]])
-        if not all(arm.pose.bones[bname].lock_location) or np.any(locations[:, l]):
-            for j in range(3):
-                _key_curve(new_fcurve(f"{base}.location", j, bname), frames,
-                           np.r_[0.0, locations[:, l, j]])
+    clips = clip_timings(obj.data, p, frames_per_field)
     keys = obj.data.shape_keys
     st = obj.artdef
     ad = keys.animation_data
     st.key_action_previous = ad.action if ad is not None else None
-    kaction, new_kcurve = _new_action(keys, f"{obj.name}_artdef_replay")
-    kaction["artdef_made"] = True
-    kaction.use_frame_range = True
-    kaction.frame_start, kaction.frame_end = 0, end
-    st.key_action = kaction
-    for c, kname in enumerate(key_names):
-        values = np.zeros(p + 1)
-        if c < p:
-            values[c + 1] = 1.0
-        _key_curve(new_kcurve(f'key_blocks["{kname}"].value', 0, "ArtDef"), frames, values)
-    return end
+    made = []
+    for clip, frames, field, from_source in clips:
+        pick = field + 1                # row 0 of np.r_[0, values]: the rest pose
+        first, end = int(frames[0]), int(frames[-1])
+        action, new_fcurve = _new_action(arm, clip or f"{arm.name}_replay")
+        action["artdef_made"] = True
+        action.use_frame_range = True
+        action.frame_start, action.frame_end = first, max(end, first + 1)
+        for l, bname in enumerate(bone_names):
+            base = f'pose.bones["{bname}"]'
+            for j in range(3):
+                _key_curve(new_fcurve(f"{base}.rotation_euler", j, bname), frames,
+                           np.r_[0.0, angles[:, l, j]][pick])
+            if not all(arm.pose.bones[bname].lock_location) or np.any(locations[:, l]):
+                for j in range(3):
+                    _key_curve(new_fcurve(f"{base}.location", j, bname), frames,
+                               np.r_[0.0, locations[:, l, j]][pick])
+        kaction, new_kcurve = _new_action(keys, f"{clip}_shape_keys" if clip
+                                          else f"{obj.name}_artdef_replay")
+        kaction["artdef_made"] = True
+        kaction.use_frame_range = True
+        kaction.frame_start, kaction.frame_end = first, max(end, first + 1)
+        for c, kname in enumerate(key_names):
+            values = (field == c).astype(np.float64)
+            _key_curve(new_kcurve(f'key_blocks["{kname}"].value', 0, "ArtDef"), frames, values)
+        made.append((clip, action, kaction, first))
+    if len(made) > 1:
+        from . import compat
+        for clip, action, kaction, first in made:
+            compat.nla_clip_track(arm, clip, action, first)
+            compat.nla_clip_track(keys, clip, kaction, first)
+        compat.assign_action(arm, made[0][1])
+        compat.assign_action(keys, made[0][2])
+    st.key_action = made[0][2]
+    if all(c[3] for c in clips):
+        return None
+    return int(max(c[1][-1] for c in clips))

@@ -137,8 +137,10 @@ def copy_without_motion(context, obj, rest, name):
 
     Dropped: modifiers that may move vertices, shape keys, object animation,
     constraints, parent (the world transform is kept), ArtDef's own rig data.
-    Kept: materials, UVs, vertex groups, and modifiers that change topology or
-    only normals/weights.  Returns (object, names of dropped modifiers).
+    Also dropped: the vertex groups of the dropped Armature modifiers' bones (the
+    source's skinning: input data, it would ride along into an export).
+    Kept: materials, UVs, other vertex groups, and modifiers that change topology
+    or only normals/weights.  Returns (object, names of dropped modifiers).
     """
     new = obj.copy()                        # modifiers with all their settings
     mesh = obj.data.copy()
@@ -162,10 +164,15 @@ def _strip_copy(context, obj, new, rest, name):
     new.animation_data_clear()
     new.constraints.clear()
     dropped = []
+    skin_groups = set()  # the source's skinning: groups of bones of a dropped Armature modifier
     for m in list(new.modifiers):
         if m.type not in GENERATE_MODIFIERS | STILL_MODIFIERS:
+            if m.type == 'ARMATURE' and m.object is not None and m.object.type == 'ARMATURE':
+                skin_groups.update(b.name for b in m.object.data.bones)
             dropped.append(m.name)
             new.modifiers.remove(m)
+    for vg in [g for g in new.vertex_groups if g.name in skin_groups]:
+        new.vertex_groups.remove(vg)
     world = obj.matrix_world.copy()
     new.parent = None
     new.matrix_world = world
@@ -284,6 +291,7 @@ class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
             return {'CANCELLED'}
         new.data["artdef_source"] = obj.name
         new.data["artdef_frames"] = kept
+        new.data["artdef_sampled_frames"] = frames  # with the frames equal to the rest (replay timing)
         new.data["artdef_rest_frame"] = self.rest_frame if use_frame else -1
         _select_only(context, new)
         skipped = len(frames) - len(kept)
@@ -376,6 +384,11 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper):
             return {'CANCELLED'}
         mesh["artdef_source"] = os.path.basename(paths[0])
         mesh["artdef_rest_file"] = os.path.basename(paths[rest])
+        # replay timing: a file's number is its frame (the rest file and files equal to it: rest)
+        numbers = [sequence.split_number(os.path.basename(p))[1] for p in paths]
+        moved = [n for i, n in enumerate(numbers) if i != rest]
+        mesh["artdef_frames"] = [int(n) for n, m in zip(moved, moves) if m]
+        mesh["artdef_sampled_frames"] = [int(n) for n in numbers]
         obj = bpy.data.objects.new(mesh.name, mesh)
         context.collection.objects.link(obj)
         _select_only(context, obj)

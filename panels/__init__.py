@@ -6,8 +6,19 @@ import textwrap
 import bpy
 
 from ..artdef_addon.options import GB, FitOptions
-from ..operators import io, ops, rig
+from ..operators import io, ops, rig, wording
 from ..operators.props import SETTING_NAMES
+
+
+def _subpanel(layout, idname, title):
+    """A collapsible section (closed by default): its body layout, or None while
+    closed.  Blender 4.1+ ``layout.panel``; older ones draw it open."""
+    if hasattr(layout, "panel"):
+        header, body = layout.panel(idname, default_closed=True)
+        header.label(text=title)
+        return body
+    layout.label(text=title)
+    return layout.column()
 
 
 class ARTDEF_PT_main(bpy.types.Panel):
@@ -22,6 +33,7 @@ class ARTDEF_PT_main(bpy.types.Panel):
         col = layout.column(align=True)
         col.operator("artdef.import_scan", icon='IMPORT')
         col.operator("artdef.import_mesh_sequence", icon='FILE_FOLDER')
+        col.operator("artdef.fields_from_file", icon='FILE_MOVIE')
         obj = context.active_object
         if obj is None or obj.type != 'MESH':
             layout.label(text="Select a mesh to fit", icon='INFO')
@@ -57,21 +69,27 @@ class ARTDEF_PT_main(bpy.types.Panel):
         col.use_property_decorate = False
         col.prop(st, "auto_links")
         col.prop(st, "max_links" if st.auto_links else "links")
-        greens = io.has_scan(mesh) and (io.scan_info(mesh) or {}).get("kind") == "greens"
-        # the fit options in their declared order (artdef_addon/options.py); Green's-only ones
-        # only for a Green's scan (or a pseudo mode already set), advanced ones last
+        greens = io.has_scan(mesh) and io.scan_info(mesh)["kind"] == "greens"
+        # the fit options in their declared order (artdef_addon/options.py): Green's-only ones
+        # only for a Green's scan (or a pseudo mode already set), the advanced ones in a section
         decl = FitOptions.declaration()
-        for advanced in (False, True):
+        for name, (_, opt) in decl.items():
+            if name == "max_links" or opt.advanced:
+                continue
+            if opt.greens_only and not greens and not (name == "mode" and st.mode == 'PSEUDO'):
+                continue
+            col.prop(st, name)
+            if name == "mode" and st.mode == 'PSEUDO':
+                col.prop(st, "load_index")
+        adv = _subpanel(box, "ARTDEF_fit_advanced", "Advanced")
+        if adv is not None:
+            adv.use_property_split = True
+            adv.use_property_decorate = False
             for name, (_, opt) in decl.items():
-                if name == "max_links" or opt.advanced != advanced:
-                    continue
-                if opt.greens_only and not greens and not (name == "mode" and st.mode == 'PSEUDO'):
-                    continue
-                col.prop(st, name)
-                if name == "mode" and st.mode == 'PSEUDO':
-                    col.prop(st, "load_index")
-            if not advanced and io.has_scan(mesh):
-                col.prop(st, "frames_per_field")
+                if opt.advanced:
+                    adv.prop(st, name)
+            if io.has_scan(mesh):
+                adv.prop(st, "frames_per_field")
         if io.has_scan(mesh):
             _draw_estimate(box, mesh, st)
         row = box.row(align=True)
@@ -82,6 +100,13 @@ class ARTDEF_PT_main(bpy.types.Panel):
         row = box.row(align=True)
         row.operator("artdef.preview_links", icon='COLOR').links = st.links
         row.operator("artdef.clear_rig", icon='TRASH')
+        if rig.has_rig(obj):  # hand-off: engines (Export Rig), animators (Finalize)
+            row = box.row(align=True)
+            row.operator("artdef.export_rig", icon='EXPORT')
+            row.operator("artdef.finalize", icon='CHECKMARK')
+            row = box.row(align=True)
+            row.operator("artdef.name_bones", icon='SORTALPHA')
+            row.operator("artdef.rotation_only", icon='CON_ROTLIKE')
 
         if st.has_fit:
             box = layout.box()
@@ -93,8 +118,15 @@ class ARTDEF_PT_main(bpy.types.Panel):
             col.label(text=f"Links: {st.fit_links}   {mode}, {st.fit_motion.lower()}"
                            + (f", {st.fit_skin} skin" if st.fit_skin else ""))
             if st.fit_link_reason:
-                for line in textwrap.wrap(st.fit_link_reason, 44):
+                errors = list(obj.get("artdef_link_errors", []))
+                plain = wording.plain_link_reason(st.fit_links, errors) or st.fit_link_reason
+                for line in textwrap.wrap(plain, 44):
                     col.label(text=line)
+                curve = _subpanel(box, "ARTDEF_link_curve", "Error by link count")
+                if curve is not None:
+                    for line in wording.error_curve_lines(errors, st.fit_links) or \
+                            textwrap.wrap(st.fit_link_reason, 44):
+                        curve.label(text=line)
             if st.fit_p_max > 0:
                 col.label(text=f"Hardening p_max: {st.fit_p_max:g}")
             col.label(text=f"Articulation error: {st.fit_articulation_percent:.2f}%")

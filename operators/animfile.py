@@ -1,0 +1,383 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Fit the file you have: an animated file Blender imports, as a tracked scan.
+
+``artdef.fields_from_file`` imports a .glb/.gltf, .fbx, .abc or .usd/.usdc/
+.usda/.usdz file with Blender's own importer (or a numbered OBJ/PLY sequence,
+a folder or a pattern, with ``artdef.import_mesh_sequence``), picks the
+animated mesh and samples it through ``artdef.fields_from_animation`` - the
+same code as the Fields from Animation button - over the file's own frames:
+the frames the file has keys at (an even step when they are evenly spaced,
+else every frame of their range), or the scene range an Alembic/USD importer
+set for a cache.  ``frame_start``/``frame_end``/``frame_step`` override it.
+
+The command line (``python -m artdef_addon fit FILE``) runs this operator.
+"""
+
+import glob
+import os
+
+import bpy
+import numpy as np
+from bpy.props import IntProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper
+
+from . import compat
+
+#: extension -> (importer operator path, keyword arguments)
+IMPORTERS = {
+    ".glb": ("import_scene.gltf", {}),
+    ".gltf": ("import_scene.gltf", {}),
+    ".fbx": ("import_scene.fbx", {}),
+    ".abc": ("wm.alembic_import", {}),
+    ".usd": ("wm.usd_import", {}),
+    ".usdc": ("wm.usd_import", {}),
+    ".usda": ("wm.usd_import", {}),
+    ".usdz": ("wm.usd_import", {}),
+}
+SEQUENCE_EXTENSIONS = (".obj", ".ply")
+#: Modifiers whose evaluation replays a cache (no action to read keys from).
+CACHE_MODIFIERS = frozenset(("MESH_SEQUENCE_CACHE", "MESH_CACHE"))
+
+
+def file_kind(path):
+    """'npz', 'animated', 'sequence' or None for a path the fit can read."""
+    if os.path.isdir(path) or any(c in os.path.basename(path) for c in "*?["):
+        return "sequence"
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".npz":
+        return "npz"
+    if ext in IMPORTERS:
+        return "animated"
+    if ext in SEQUENCE_EXTENSIONS:
+        return "sequence"
+    return None
+
+
+def _operator(path):
+    mod, name = path.split(".")
+    return getattr(getattr(bpy.ops, mod), name)
+
+
+def _sequence_path(path):
+    """A folder or the first file of a numbered OBJ/PLY sequence (a pattern is
+    resolved to its first match)."""
+    if any(c in os.path.basename(path) for c in "*?["):
+        matches = sorted(p for p in glob.glob(path) if p.lower().endswith(SEQUENCE_EXTENSIONS))
+        if not matches:
+            raise ValueError(f"no .obj/.ply file matches {path}")
+        return matches[0]
+    return path
+
+
+def _is_custom_shape(obj):
+    """A mesh used only to draw bones (the glTF importer adds one)."""
+    for arm in bpy.data.objects:
+        if arm.type == 'ARMATURE' and arm.pose is not None:
+            if any(pb.custom_shape == obj for pb in arm.pose.bones):
+                return True
+    return False
+
+
+def _actions_moving(obj):
+    """(action, slot) pairs that move mesh object ``obj``: its own, its shape
+    keys', its armatures' and its parents'."""
+    ids = [obj, obj.data.shape_keys]
+    for mod in obj.modifiers:
+        if mod.type == 'ARMATURE' and mod.object is not None:
+            ids.append(mod.object)
+    parent = obj.parent
+    while parent is not None:
+        ids.append(parent)
+        parent = parent.parent
+    out = []
+    for id_data in ids:
+        ad = getattr(id_data, "animation_data", None) if id_data is not None else None
+        if ad is not None and ad.action is not None:
+            out.append((ad.action, getattr(ad, "action_slot", None)))
+    return out
+
+
+def animated_mesh(objects):
+    """The mesh to fit among ``objects``: the one with the most vertices of
+    those that something animates (an action on it, its shape keys, armature
+    or parents, or a cache modifier); None if nothing moves."""
+    best = None
+    for obj in objects:
+        if obj.type != 'MESH' or len(obj.data.polygons) == 0 or _is_custom_shape(obj):
+            continue
+        moving = bool(_actions_moving(obj)) or any(m.type in CACHE_MODIFIERS for m in obj.modifiers)
+        if moving and (best is None or len(obj.data.vertices) > len(best.data.vertices)):
+            best = obj
+    return best
+
+
+def file_frames(obj, scene):
+    """(start, end, step) the file animates ``obj`` over: its keys' frames when
+    it has actions (their even spacing as step, else 1), else the scene's range
+    (caches: the importer sets it)."""
+    keys = set()
+    for action, slot in _actions_moving(obj):
+        keys.update(round(f) for f in compat.keyed_frames(action, slot))
+    if len(keys) >= 2:
+        frames = sorted(keys)
+        steps = {b - a for a, b in zip(frames, frames[1:])}
+        step = steps.pop() if len(steps) == 1 else 1
+        return frames[0], frames[-1], step
+    return scene.frame_start, scene.frame_end, 1
+
+
+def armature_clips(obj):
+    """(armature, [actions]) when an armature moving ``obj`` has several clips:
+    its active action and the actions of its NLA tracks (where Blender's glTF and
+    FBX importers put a file's other animations); else (None, [])."""
+    for mod in obj.modifiers:
+        if mod.type == 'ARMATURE' and mod.object is not None:
+            ad = mod.object.animation_data
+            if ad is None:
+                continue
+            actions = [ad.action] if ad.action is not None else []
+            for track in ad.nla_tracks:
+                for strip in track.strips:
+                    if strip.action is not None and strip.action not in actions:
+                        actions.append(strip.action)
+            if len(actions) > 1:
+                return mod.object, actions
+    return None, []
+
+
+def _even_range(frames):
+    frames = sorted(set(int(round(f)) for f in frames))
+    steps = {b - a for a, b in zip(frames, frames[1:])}
+    return frames[0], frames[-1], (steps.pop() if len(steps) == 1 else 1)
+
+
+def sample_clips(context, obj, arm, actions):
+    """Sample ``obj`` once per clip (each action made the armature's active one,
+    NLA off meanwhile) through ``artdef.fields_from_animation``, and merge the
+    scans into the first copy: its fields are every clip's, in clip order, with
+    ``artdef_field_clips``/``artdef_clip_names``/``artdef_clip_sampled`` for the
+    replay (one action per clip).  Returns the scan object or None (reported)."""
+    ad = arm.animation_data
+    saved = (ad.action, getattr(ad, "action_slot", None), ad.use_nla)
+    copies, names = [], []
+    try:
+        ad.use_nla = False
+        for action in actions:
+            compat.assign_action(arm, action)
+            start, end, step = _even_range(compat.keyed_frames(action))
+            context.view_layer.objects.active = obj
+            with context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+                result = bpy.ops.artdef.fields_from_animation(frame_start=start, frame_end=end,
+                                                              frame_step=step)
+            if 'FINISHED' not in result:
+                return None
+            copies.append(context.view_layer.objects.active)
+            names.append(action.name)
+        first = merge_clip_scans(copies, names)
+        copies = copies[:1]
+        return first
+    finally:
+        compat.assign_action(arm, saved[0])
+        ad.use_nla = saved[2]
+        if len(copies) > 1:  # failed half way: nothing of the sampling stays
+            for other in copies:
+                data = other.data
+                bpy.data.objects.remove(other, do_unlink=True)
+                bpy.data.meshes.remove(data)
+
+
+def merge_clip_scans(objects, names):
+    """Merge the tracked scans on ``objects`` (one clip each, same mesh and rest)
+    into the first: its fields become every clip's, in order, with the replay's
+    per-clip timing (``artdef_field_clips``, ``artdef_clip_names``,
+    ``artdef_clip_sampled``).  The other objects are deleted.  ValueError (and
+    nothing changed) if a clip's mesh or rest shape differs from the first's."""
+    from ..artdef_addon import scan as _scan
+    from . import io
+    scans = [io.read_scan(o).scan for o in objects]
+    first = scans[0]
+    diag = float(np.linalg.norm(np.ptp(first.vertices, axis=0))) or 1.0
+    for name, sc in zip(names[1:], scans[1:]):
+        if sc.vertices.shape != first.vertices.shape or not np.array_equal(sc.faces, first.faces):
+            raise ValueError(f"clip {name!r} is not the same mesh as {names[0]!r} "
+                             f"({len(sc.vertices)} vertices, expected {len(first.vertices)})")
+        if np.abs(sc.vertices - first.vertices).max() > 1e-5 * diag:
+            raise ValueError(f"clip {name!r} has another rest shape than {names[0]!r}")
+    for o in objects:
+        if o.data.get("artdef_field_clips") is not None:
+            raise ValueError(f"'{o.name}' holds several clips already")
+    merged = _scan.validate_scan(_scan.Scan(
+        first.vertices, first.faces, displacements=np.concatenate([s.displacements for s in scans])))
+    frames, clips, sampled = [], [], {}
+    for c, o in enumerate(objects):
+        kept = [int(f) for f in o.data.get("artdef_frames", [])]
+        if len(kept) != scans[c].n_fields:  # no source frames: the clip's fields 1, 2, ...
+            kept = list(range(1, scans[c].n_fields + 1))
+        frames += kept
+        clips += [c] * len(kept)
+        sampled[str(c)] = [int(f) for f in o.data.get("artdef_sampled_frames", kept)]
+    target = objects[0]
+    io.write_scan(target.data, merged)
+    target.data["artdef_frames"] = frames
+    target.data["artdef_field_clips"] = clips
+    target.data["artdef_clip_names"] = list(names)
+    target.data["artdef_clip_sampled"] = sampled
+    target.data["artdef_clip"] = names[0]
+    if "artdef_sampled_frames" in target.data:
+        del target.data["artdef_sampled_frames"]
+    for other in objects[1:]:
+        data = other.data
+        bpy.data.objects.remove(other, do_unlink=True)
+        if data.users == 0:
+            bpy.data.meshes.remove(data)
+    return target
+
+
+def clip_name(path):
+    """A clip's name from its file, folder or pattern: ``walk/``, ``walk_*.obj``,
+    ``walk.glb`` -> ``walk``."""
+    base = os.path.basename(os.path.normpath(path))
+    stem = os.path.splitext(base)[0] if not os.path.isdir(path) else base
+    return stem.split("*")[0].rstrip("_-. ") or stem or "clip"
+
+
+def import_animated(context, path):
+    """Import ``path`` with Blender's importer; return the new objects."""
+    ext = os.path.splitext(path)[1].lower()
+    op_path, kwargs = IMPORTERS[ext]
+    before = set(bpy.data.objects)
+    result = _operator(op_path)(filepath=path, **kwargs)
+    if 'FINISHED' not in result:
+        raise ValueError(f"Blender's importer could not read {os.path.basename(path)}")
+    return [o for o in bpy.data.objects if o not in before]
+
+
+class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
+    """Import an animated file (glTF, FBX, Alembic, USD, or a numbered OBJ/PLY sequence) with Blender's importer and sample its animated mesh over the file's own frames into a tracked scan (Fields from Animation), ready to fit"""
+    bl_idname = "artdef.fields_from_file"
+    bl_label = "Import Animated File as Scan"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    filter_glob: StringProperty(
+        default="*.glb;*.gltf;*.fbx;*.abc;*.usd;*.usdc;*.usda;*.usdz;*.obj;*.ply",
+        options={'HIDDEN'})
+    filename_ext = ""
+    frame_start: IntProperty(name="Start", default=0,
+                             description="First frame sampled (unset: the file's first key)")
+    frame_end: IntProperty(name="End", default=0,
+                           description="Last frame sampled (unset: the file's last key)")
+    frame_step: IntProperty(name="Step", default=1, min=1,
+                            description="Sample every n-th frame (unset: the file's key spacing)")
+
+    @classmethod
+    def poll(cls, context):
+        if context.mode != 'OBJECT':
+            cls.poll_message_set("Switch to Object Mode")
+            return False
+        return True
+
+    def execute(self, context):
+        path = bpy.path.abspath(self.filepath)
+        kind = file_kind(path)
+        if kind not in ("animated", "sequence") or (kind == "animated" and not os.path.isfile(path)):
+            what = "not found" if kind == "animated" else "not an animated file Blender imports"
+            self.report({'ERROR'}, f"{os.path.basename(path) or path}: {what}")
+            return {'CANCELLED'}
+        if kind == "sequence":
+            try:
+                first = _sequence_path(path)
+            except ValueError as err:
+                self.report({'ERROR'}, str(err))
+                return {'CANCELLED'}
+            return bpy.ops.artdef.import_mesh_sequence(filepath=first)
+        try:
+            new = import_animated(context, path)
+        except (RuntimeError, ValueError) as err:
+            self.report({'ERROR'}, f"Cannot import {os.path.basename(path)}: {str(err).strip()}")
+            return {'CANCELLED'}
+        obj = animated_mesh(new)
+        if obj is None:
+            self._remove(new)
+            self.report({'ERROR'}, f"{os.path.basename(path)}: no animated mesh in the file")
+            return {'CANCELLED'}
+        props = self.properties
+        arm, clips = armature_clips(obj)
+        if clips and not any(props.is_property_set(p) for p in ("frame_start", "frame_end",
+                                                                 "frame_step")):
+            scan_obj = sample_clips(context, obj, arm, clips)
+            if scan_obj is None:
+                self._remove(new)
+                self.report({'ERROR'}, f"{os.path.basename(path)}: sampling '{obj.name}' failed "
+                                       "(see the Info log)")
+                return {'CANCELLED'}
+            scan_obj.data["artdef_source_file"] = os.path.basename(path)
+            for o in new:
+                o.hide_set(True)
+                o.hide_render = True
+            for o in context.view_layer.objects:
+                o.select_set(o == scan_obj)
+            context.view_layer.objects.active = scan_obj
+            self.report({'INFO'}, f"'{scan_obj.name}': '{obj.name}' of {os.path.basename(path)}, "
+                                  f"{len(clips)} clips ({', '.join(a.name for a in clips)}) "
+                                  f"sampled at their own frames")
+            return {'FINISHED'}
+        start, end, step = file_frames(obj, context.scene)
+        if props.is_property_set("frame_start"):
+            start = self.frame_start
+        if props.is_property_set("frame_end"):
+            end = self.frame_end
+        if props.is_property_set("frame_step"):
+            step = self.frame_step
+        scene = context.scene
+        for _ in range(2):  # the file's own range (start may not pass end: set twice)
+            scene.frame_start, scene.frame_end = start, max(end, start)
+        for o in context.view_layer.objects:
+            o.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+        with context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+            result = bpy.ops.artdef.fields_from_animation(frame_start=start, frame_end=end,
+                                                          frame_step=step)
+        if 'FINISHED' not in result:
+            self._remove(new)
+            self.report({'ERROR'}, f"{os.path.basename(path)}: sampling '{obj.name}' failed "
+                                   "(see the Info log)")
+            return {'CANCELLED'}
+        scan_obj = context.view_layer.objects.active
+        scan_obj.data["artdef_source_file"] = os.path.basename(path)
+        clips = _actions_moving(obj)
+        if clips:  # the exported clip keeps the source clip's name
+            scan_obj.data["artdef_clip"] = clips[0][0].name
+        # The source stays for comparison (and bone names) but out of sight:
+        # the scan copy sits exactly on it.
+        for o in new:
+            o.hide_set(True)
+            o.hide_render = True
+        self.report({'INFO'}, f"'{scan_obj.name}': '{obj.name}' of {os.path.basename(path)} "
+                              f"sampled over frames {start}-{end} step {step}")
+        return {'FINISHED'}
+
+    @staticmethod
+    def _remove(objects):
+        for o in objects:
+            bpy.data.objects.remove(o, do_unlink=True)
+
+
+def menu_import(self, context):
+    self.layout.operator(ARTDEF_OT_fields_from_file.bl_idname,
+                         text="ArtDef Animated File as Scan (.glb/.fbx/.abc/.usd)")
+
+
+classes = (ARTDEF_OT_fields_from_file,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(menu_import)
+
+
+def unregister():
+    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
