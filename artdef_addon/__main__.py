@@ -1,5 +1,11 @@
+import signal
 import sys
 
 from .cli import main
 
-sys.exit(main())
+code = main()
+if "bpy" in sys.modules:
+    # Blender's teardown at interpreter exit must not be interrupted: a SIGINT there (Python has
+    # restored the default handler by then) killed the process or crashed it inside bpy
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+sys.exit(code)

@@ -1,6 +1,7 @@
 """Command line: ``python -m artdef_addon fit|sample|info ...``.
 
-Exit codes: 0 success, 2 bad input (one line on stderr, no output written), 1 other failure.
+Exit codes: 0 success, 2 bad input (one line on stderr, nothing written), 1 failure while working
+or writing (one line, earlier files intact), 130 interrupted. See docs/cli.md.
 """
 from __future__ import annotations
 
@@ -28,13 +29,18 @@ def _option_arguments(parser) -> None:
         if opt.choices:
             parser.add_argument(flag, choices=opt.values, default=default, help=helptext,
                                 metavar="{" + ",".join(opt.values) + "}")
-        else:
+        else:       # None: not given, the declared default applies (max_links: see _cmd_fit)
             helptext += f" (default: {'off' if default is None else default})"
-            parser.add_argument(flag, type=opt.type, default=default, help=helptext)
+            parser.add_argument(flag, type=opt.type, default=None, help=helptext)
+
+
+#: --links auto tries up to this many links unless --max-links says otherwise (then clamped to the
+#: scan's triangles; an explicit --max-links above them is refused)
+DEFAULT_MAX_LINKS = FitOptions().max_links   # --links auto: clamped to the scan's triangles
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m artdef_addon",
+    p = _Parser(prog="python -m artdef_addon",
                                 description="Articulated deformation from displacement fields "
                                             "(Lang, Pai & Seidel, GI 2003).")
     sub = p.add_subparsers(dest="command", required=True)
@@ -74,50 +80,77 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+#: outputs renamed into place by this run (so a late Ctrl-C is reported truthfully)
+_committed: list = []
+
+
 class _BadInput(Exception):
     pass
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``artdef: error: ...``, exit 2 (no usage block)."""
+
+    def error(self, message):
+        raise _BadInput(message)
+
+
 def _fail(msg: str, code: int = 2) -> int:
-    print(f"artdef: error: {msg}", file=sys.stderr)
+    print(f"artdef: error: {msg}", file=sys.stderr, flush=True)
     return code
 
 
+def _check(rng, name, value):
+    from .files import OptionError
+    try:
+        return rng.check(name, value)
+    except OptionError as exc:
+        raise _BadInput(str(exc)) from None
+
+
 def _cmd_sample(a) -> int:
-    from . import samples, scan as S
+    from . import files, samples
+    R = files.RANGES
+    files.check_outputs([], {"-o": a.output})
+    if a.name not in samples.NAMES:
+        raise _BadInput(f"unknown sample {a.name!r}; choose from {', '.join(samples.NAMES)}")
     kw = {}
     if a.fields is not None:
-        kw["n_fields"] = a.fields
+        if a.name == "greens_rod":
+            raise _BadInput("--fields does not apply to greens_rod (its fields are its load columns)")
+        kw["n_fields"] = _check(R["fields"], "--fields", a.fields)
     if a.seed is not None:
-        kw["seed"] = a.seed
+        if a.name == "greens_rod":
+            raise _BadInput("--seed does not apply to greens_rod (it is not random)")
+        kw["seed"] = _check(R["seed"], "--seed", a.seed)
+    noise = _check(R["noise"], "--noise", a.noise)
     if a.name == "branching":
-        kw.update(noise=a.noise, bulges=a.bulges, disconnected=a.disconnected)
+        kw.update(noise=noise, bulges=a.bulges, disconnected=a.disconnected)
+    elif noise or a.bulges or a.disconnected:
+        raise _BadInput("--noise, --bulges and --disconnected apply to the branching sample only")
     try:
         sc = samples.make(a.name, **kw)
     except (ValueError, TypeError) as exc:
         raise _BadInput(str(exc)) from None
-    S.save_scan(a.output, sc)
+    from .scan import validate_scan
+    validate_scan(sc)       # a sample is written only if it can be fitted
+    from .scan import save_scan
+    save_scan(a.output, sc)
     print(f"wrote {a.output}: {a.name}, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields ({sc.kind})")
     return 0
 
 
 def _cmd_info(a) -> int:
-    from . import scan as S
-    try:
-        with np.load(a.path, allow_pickle=False) as z:
-            is_result = "face_labels" in z.files
-    except (OSError, ValueError, EOFError) as exc:
-        raise _BadInput(f"cannot read {a.path}: {exc}") from None
-    if is_result:
+    from . import files
+    d = files.read_npz(a.path)          # BadFile: one line naming the file
+    if "face_labels" in d:
         from .fit import FitResult
+        res = FitResult.load(a.path)
         print(f"{a.path}: fit result")
-        print(FitResult.load(a.path).summary())
+        print(res.summary())
         return 0
-    try:
-        sc = S.load_scan(a.path)
-    except S.ScanError as exc:
-        raise _BadInput(str(exc)) from None
+    sc = files.read_scan(a.path)
     print(f"{a.path}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields, {sc.n_loads} loads, "
           f"{0 if sc.support_vertices is None else len(sc.support_vertices)} support vertices, "
@@ -197,18 +230,14 @@ def blender_layer():
 
 
 def _cmd_fit(a) -> int:
-    from . import api, scan as S
+    from . import api, files
+    from . import fit as fit_module
+    R = files.RANGES
     t0 = time.perf_counter()
-    outputs = (a.output, a.blend, a.glb, a.fbx, a.png)
-    for path in outputs:
-        if path and os.path.isdir(path):
-            raise _BadInput(f"output path is a directory: {path}")
-        if path and os.path.abspath(path) == os.path.abspath(a.scan):
-            raise _BadInput(f"output would overwrite the input: {path}")
-    try:
-        options = FitOptions(**{name: getattr(a, name) for name in FitOptions.declaration()})
-    except OptionsError as exc:
-        raise _BadInput(str(exc)) from None
+    blender = bool(a.blend or a.glb or a.fbx or a.png)
+    # every output checked before any work: writable directory, not an input, not each other
+    files.check_outputs([a.scan, *a.clip], {"-o": a.output, "--blend": a.blend, "--glb": a.glb,
+                                            "--fbx": a.fbx, "--png": a.png})
     if a.rotation_only and not (a.blend or a.glb or a.fbx):
         raise _BadInput("--rotation-only applies to the rig: add --blend, --glb or --fbx")
     kind = input_kind(a.scan)
@@ -228,8 +257,23 @@ def _cmd_fit(a) -> int:
             raise _BadInput(f"--clip {clip}: no such file")
     if frames is not None and kind == "npz":
         raise _BadInput("--frames applies to animated files and sequences, not to a .npz scan")
+    auto = str(a.links).strip().lower() == "auto"
+    try:
+        links = None if auto else R["links"].check("--links", a.links)
+    except files.OptionError as exc:
+        raise _BadInput(f"{exc} (or 'auto')") from None
+    max_links = None if a.max_links is None else _check(R["max_links"], "--max-links", a.max_links)
+    if a.p_max is not None:
+        _check(R["p_max"], "--p-max", a.p_max)
+    if a.memory_budget is not None:
+        _check(R["memory_budget"], "--memory-budget", a.memory_budget)
+    given = {name: getattr(a, name) for name in FitOptions.declaration() if getattr(a, name) is not None}
+    try:
+        options = FitOptions(**given)          # the one check of the settings
+    except OptionsError as exc:
+        raise _BadInput(str(exc)) from None
     headless = None
-    if a.blend or a.glb or a.fbx or a.png or kind != "npz":
+    if blender or kind != "npz":
         headless = blender_layer()
         try:
             headless.require_bpy()
@@ -238,10 +282,7 @@ def _cmd_fit(a) -> int:
                             f"reading {os.path.basename(a.scan)} needs Blender: " + str(exc)) from None
     prepared = None
     if kind == "npz":
-        try:
-            sc = S.load_scan(a.scan)
-        except S.ScanError as exc:
-            raise _BadInput(str(exc)) from None
+        sc = files.read_scan(a.scan)    # BadFile: one line naming the file and the problem
     else:
         if not os.path.exists(a.scan) and kind == "animated":
             raise _BadInput(f"{a.scan}: no such file")
@@ -250,33 +291,44 @@ def _cmd_fit(a) -> int:
         except RuntimeError as exc:
             raise _BadInput(str(exc).splitlines()[0] if str(exc) else "cannot read the file") from None
     t_load = time.perf_counter() - t0
-    auto = str(a.links).strip().lower() == "auto"
-    if auto:
-        links = "auto"
+    usable = sc.n_faces - len(sc.degenerate_faces)
+    why = f" (the scan's {usable} non-degenerate triangles)"
+    if auto and max_links is None:
+        max_links = min(FitOptions().max_links, usable)
+    elif auto:
+        max_links = _check(R["max_links"].within(usable, why), "--max-links", max_links)
     else:
-        try:
-            links = int(a.links)
-        except ValueError:
-            raise _BadInput(f"--links must be a whole number or 'auto', got {a.links!r}") from None
+        links = _check(R["links"].within(usable, why), "--links", links)
+    if auto:
+        options = options.replace(max_links=max_links)
+    t_fit = time.perf_counter()
     try:
-        t_fit = time.perf_counter()
         if not a.quiet:
-            est, _ = api.plan(sc.n_faces - len(sc.degenerate_faces), sc.n_fields, sc.n_vertices, sc.kind,
-                              options)
+            est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options)
             print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
-        result = api.fit(sc, links, options)
-    except (S.ScanError, OptionsError) as exc:
+        result = api.fit(sc, "auto" if auto else links, options)
+    except OptionsError as exc:
         raise _BadInput(str(exc)) from None
     timings = {"load": t_load, **result.timings}
     timings["total"] = time.perf_counter() - t_fit
     result.timings = timings
-    if a.output:
-        result.save(a.output)
-    written = {}
-    if a.blend or a.glb or a.fbx or a.png:
-        written = headless.build_outputs(a.scan, sc, result, a.blend, a.glb, a.png, fbx=a.fbx,
-                                         mesh=prepared, rotation_only=a.rotation_only)
-    rot_err = written.pop("rotation_only_error", None) if written else None
+    # all outputs are written to temporaries and renamed into place together at the end: a failure
+    # or Ctrl-C anywhere before leaves every earlier file byte-identical and no partial file
+    rot_err = None
+    with files.Outputs() as out:
+        if a.output:
+            out.write_npz(a.output, fit_module.result_arrays(result), compress=True)
+        if blender:
+            if not a.quiet:
+                print("building the Blender outputs", flush=True)
+            # the rig is built from this result: one fit per command
+            made = headless.build_outputs(a.scan, sc, result, a.blend and out.path(a.blend),
+                                          a.glb and out.path(a.glb), a.png and out.path(a.png),
+                                          fbx=a.fbx and out.path(a.fbx), mesh=prepared,
+                                          rotation_only=a.rotation_only)
+            rot_err = made.pop("rotation_only_error", None) if made else None
+        written = out.commit()
+    _committed.extend(written)
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
@@ -290,17 +342,44 @@ def _cmd_fit(a) -> int:
         if rot_err is not None:
             print(f"rotation-only joints: added error max {rot_err[0]:.3f}%, "
                   f"rms {rot_err[1]:.3f}% of the diagonal")
-        for path in (a.output, *written.values()):
+        for path in (a.output, a.blend, a.glb, a.fbx, a.png):
             if path:
                 print(f"wrote {path}")
     return 0
 
 
 def main(argv=None) -> int:
-    a = _parser().parse_args(argv)
+    """Run the command line; returns the exit code (README, "Exit codes and guarantees"):
+    0 success, 2 bad input or unusable output path (one line, nothing written), 1 a failure while
+    working or writing (one line, earlier files intact), 130 interrupted (Ctrl-C; nothing written)."""
+    from .files import OptionError, OutputError
+    from .scan import ScanError
+    _committed.clear()
     try:
+        a = _parser().parse_args(argv)
         return {"fit": _cmd_fit, "sample": _cmd_sample, "info": _cmd_info}[a.command](a)
-    except _BadInput as exc:
-        return _fail(str(exc).splitlines()[0] if str(exc) else "bad input")
+    except (_BadInput, ScanError, OutputError, OptionError) as exc:
+        return _fail(" ".join(str(exc).split()) or "bad input")
     except KeyboardInterrupt:
-        return _fail("interrupted", 130)
+        if _committed:
+            return _fail(f"interrupted after writing {', '.join(_committed)}", 130)
+        return _fail("interrupted; no file was written or changed", 130)
+    except BrokenPipeError:         # stdout closed by the reader (| head): not an error of ours
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141
+    except SystemExit as exc:       # --help / --version
+        return exc.code if isinstance(exc.code, int) else 0
+    except OSError as exc:
+        where = f" {exc.filename}" if exc.filename else ""
+        return _fail(f"cannot write{where}: {exc.strerror or exc}; earlier files are unchanged", 1)
+    except MemoryError:
+        return _fail("out of memory; earlier files are unchanged", 1)
+    except Exception as exc:
+        if os.environ.get("ARTDEF_TRACEBACK"):
+            raise
+        msg = " ".join(str(exc).split())
+        return _fail(f"internal error: {type(exc).__name__}: {msg} (earlier files are unchanged; "
+                     "set ARTDEF_TRACEBACK=1 for the traceback)", 1)

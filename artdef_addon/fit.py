@@ -14,6 +14,7 @@ Stages (paper §5–§7, METHOD §2–§10):
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 
 import numpy as np
@@ -92,6 +93,14 @@ class FitResult:
         """Read a result written by :meth:`save`."""
         return load_result(path)
 
+    def error_percent_text(self) -> str:
+        """The Karni–Gotsman articulation error as text: "1.23%", or "n/a (one field)" where it is
+        undefined (it divides by the fields' spread about their mean, zero for a single field)."""
+        e = self.articulation_error_percent
+        if np.isfinite(e):
+            return f"{e:.2f}%"
+        return "n/a (one field)" if self.rotations.shape[0] == 1 else "n/a (the fields do not differ)"
+
     def summary(self) -> str:
         lines = [f"links: {self.n_links}  mode: {self.mode}  motion: {self.motion}  skin: {self.skin}"]
         for l in range(self.n_links):
@@ -102,7 +111,7 @@ class FitResult:
             lines.append(f"  link {l:2d}: {np.count_nonzero(self.face_labels == l):6d} triangles, "
                          f"parent {par:>8s}, {where}, joint error {self.joint_errors[l]:.3g}")
         lines.append(f"rms error: articulation {self.rms_articulation:.4g} "
-                     f"({self.articulation_error_percent:.2f}%), articulation + residual {self.rms_total:.3g}")
+                     f"({self.error_percent_text()}), articulation + residual {self.rms_total:.3g}")
         lines.append("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in self.timings.items()))
         lines.extend(f"note: {n}" for n in self.notes)
         return "\n".join(lines)
@@ -557,7 +566,8 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     # ‖X − X̄‖ over fields, streamed: X − X̄ = u_p − ū
     mean_u = fields.mean(axis=0)
     spread = np.sqrt(sum(float(np.sum((fields[i] - mean_u) ** 2)) for i in range(P)))
-    kg = float(100.0 * np.sqrt(art_err.sum()) / spread) if spread > 0 else 0.0
+    # undefined (NaN, shown as "n/a") where the fields do not spread: one field, or identical ones
+    kg = float(100.0 * np.sqrt(art_err.sum()) / spread) if spread > 0 else float("nan")
     timings["model"] = time.perf_counter() - t0
     res = FitResult(face_labels=labels, parents=parents, joints=joint, joint_errors=jerr,
                     heads=heads, tails=tails, frames=frames, grounded=grounded, weights=weights,
@@ -672,7 +682,13 @@ _ARRAYS = ("face_labels", "parents", "joints", "joint_errors", "heads", "tails",
 
 
 def save_result(path, result: FitResult) -> None:
-    """Write a result ``.npz`` (see docs/formats.md, "Result file")."""
+    """Write a result ``.npz`` (see docs/formats.md, "Result file") atomically, with exactly the name ``path``."""
+    from .files import write_npz
+    write_npz(path, result_arrays(result), compress=True)
+
+
+def result_arrays(result: FitResult) -> dict:
+    """The arrays of a result file (what :func:`save_result` writes)."""
     out = {k: getattr(result, k) for k in _ARRAYS}
     out.update(rms_articulation=np.float64(result.rms_articulation), rms_total=np.float64(result.rms_total),
                articulation_error_percent=np.float64(result.articulation_error_percent),
@@ -690,13 +706,23 @@ def save_result(path, result: FitResult) -> None:
         for k, sub in enumerate(result.pseudo):
             for name in _ARRAYS + ("kappa", "load_vertices"):
                 out[f"pseudo{k}_{name}"] = getattr(sub, name)
-    np.savez_compressed(path, **out)
+    return out
 
 
 def load_result(path) -> FitResult:
-    """Read a result written by :func:`save_result` (``allow_pickle=False``)."""
-    with np.load(path, allow_pickle=False) as z:
-        d = {k: z[k] for k in z.files}
+    """Read a result written by :func:`save_result` (never unpickles): :func:`files.read_result`
+    checks every key, dtype and shape first; a bad file is one ``ScanError`` line."""
+    from .files import BadFile, read_result_arrays
+    d = read_result_arrays(path)
+    try:
+        return _result_from_arrays(d)
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BadFile(f"{os.fspath(path)}: damaged result ({line})") from None
+
+
+def _result_from_arrays(d: dict) -> FitResult:
+    """A :class:`FitResult` from the arrays of a checked result file."""
 
     def build(prefix=""):
         kw = {k: d[prefix + k] for k in _ARRAYS}

@@ -252,7 +252,8 @@ def _whole_fits_upward(seg, k: int, max_links: int, window: int, progress=None, 
                 def report(stage, frac, j=j):
                     return progress("links", min(1.0, (j - start + frac) / span))
             fits[j] = fit(seg.scan, j, segmenter=seg, progress=report)
-            errors[j] = float(fits[j].articulation_error_percent)
+            e = float(fits[j].articulation_error_percent)
+            errors[j] = e if np.isfinite(e) else 0.0   # undefined (one field): nothing to explain
         return errors[j]
 
     while k < max_links:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from .files import MAX_AUTO_LINKS
 from .scan import ScanError
 
 GB = 2 ** 30
@@ -95,7 +96,7 @@ class FitOptions:
         description="Strain hardening limit p_max in units of the probe load (> 1, paper §7.1); "
                     "off by default (linear response)")
     max_links: int = _field(
-        30, label="Max Links", type=int, min=1, soft_max=64,
+        30, label="Max Links", type=int, min=1, max=MAX_AUTO_LINKS, soft_max=64,
         description="Links auto: the largest link count tried")
     memory_budget: float = _field(
         2.0, label="Memory Budget", type=float, unit="GB", min=0.001, soft_min=0.1, soft_max=64.0,

@@ -33,6 +33,11 @@ _KNOWN_KEYS = {"vertices", "faces", "greens", "displacements", "load_vertices",
                "support_vertices", "probe_load", "format_version"}
 
 
+#: largest coordinate or displacement magnitude accepted: squares and sums of squares of larger
+#: values overflow float64 (the fit's distances and moments), giving NaN instead of a result
+MAX_MAGNITUDE = 1e100
+
+
 class ScanError(ValueError):
     """Bad scan input; the message names the problem."""
 
@@ -103,13 +108,17 @@ def _as_float(name, a, ndim):
     if not np.all(np.isfinite(a)):
         bad = int(np.count_nonzero(~np.isfinite(a)))
         raise ScanError(f"{name} contains {bad} NaN or infinite values")
+    if a.size and np.abs(a).max() > MAX_MAGNITUDE:
+        raise ScanError(f"{name} has values up to {np.abs(a).max():.3g}; beyond {MAX_MAGNITUDE:g} the fit's "
+                        f"squared distances overflow: rescale the scan")
     return a
 
 
 def _as_index(name, a, n, ndim=1):
     a = np.asarray(a)
     if a.dtype.kind not in "iu":
-        if a.dtype.kind == "f" and a.size and np.all(np.isfinite(a)) and np.all(a == np.round(a)):
+        if (a.dtype.kind == "f" and a.size and np.all(np.isfinite(a)) and np.all(a == np.round(a))
+                and float(np.abs(a).max()) < 2 ** 53):
             a = a.astype(np.int64)
         elif a.size == 0:
             a = a.astype(np.int64)
@@ -211,27 +220,11 @@ def _check_scan(scan: Scan) -> Scan:
 
 
 def load_scan(path: str | os.PathLike) -> Scan:
-    """Read a scan ``.npz`` (never unpickles) and validate it."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise ScanError(f"scan file not found: {path}") from None
-    except ValueError as exc:  # object arrays refused, or not an npz
-        raise ScanError(f"cannot read scan {path}: {exc}") from None
-    except (OSError, EOFError) as exc:
-        raise ScanError(f"cannot read scan {path}: not a valid .npz file ({exc})") from None
-    for key in ("vertices", "faces"):
-        if key not in data:
-            raise ScanError(f"scan {os.path.basename(str(path))} has no '{key}' array")
-    probe = data.get("probe_load", 1.0)
-    if np.ndim(probe) != 0:
-        raise ScanError(f"probe_load must be a scalar, got shape {np.shape(probe)}")
-    return validate_scan(Scan(
-        vertices=data["vertices"], faces=data["faces"],
-        greens=data.get("greens"), displacements=data.get("displacements"),
-        load_vertices=data.get("load_vertices"), support_vertices=data.get("support_vertices"),
-        probe_load=float(probe)))
+    """Read a scan ``.npz`` (never unpickles) and validate it: :func:`artdef_addon.files.read_scan`
+    (the one read boundary of the command line and the Blender import). Raises ``ScanError``
+    (``files.BadFile``): one line naming the file and the problem."""
+    from .files import read_scan
+    return read_scan(path)
 
 
 def save_scan(path: str | os.PathLike, scan: Scan, compress: bool = False) -> None:
@@ -252,4 +245,5 @@ def save_scan(path: str | os.PathLike, scan: Scan, compress: bool = False) -> No
         out["load_vertices"] = np.asarray(scan.load_vertices, dtype=np.int64)
     if scan.support_vertices is not None:
         out["support_vertices"] = np.asarray(scan.support_vertices, dtype=np.int64)
-    (np.savez_compressed if compress else np.savez)(path, **out)
+    from .files import write_npz
+    write_npz(path, out, compress)   # atomic, exactly this file name

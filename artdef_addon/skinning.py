@@ -269,7 +269,10 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
     diagonal) also every link with a vertex within that geodesic distance along the mesh edges
     (Dijkstra from each link's vertices; links on another connected piece are never candidates),
     so a coarse mesh whose edges are longer than the radius still reaches its neighbours. A
-    vertex's own links are always candidates.
+    vertex's own links are always candidates. A vertex that reaches no link (in no triangle, which
+    the scan format allows: METHOD §2 segments triangles, so nothing ties it to a link) has every
+    link as candidate: the data then choose its skin, by the single-link fit and the simplex solve,
+    instead of a 0/0 weight row.
     """
     N, L = incidence.shape
     f = faces
@@ -292,6 +295,7 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
                 continue
             d = dijkstra(E, directed=False, indices=src, min_only=True, limit=limit)
             cand[:, l] |= np.isfinite(d)
+    cand[~cand.any(axis=1)] = True
     return cand
 
 

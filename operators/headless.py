@@ -18,8 +18,10 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 
 NEED_BPY = ("--blend/--glb need Blender: run inside "
             "`blender -b -P scripts/artdef_fit.py -- ...` or install the bpy module")
@@ -184,9 +186,43 @@ def _parent_keep_transform(child, parent):
 
 
 def _abs(path: str) -> str:
-    path = os.path.abspath(path)
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    return path
+    # the directory must exist: the command line checks every output path before any work
+    # (files.check_outputs) and writes into temporaries there (files.Outputs)
+    return os.path.abspath(path)
+
+
+class _Interrupts:
+    """Ctrl-C during the Blender stage, handled without raising inside ``bpy``.
+
+    A KeyboardInterrupt raised while Blender runs Python (its start-up, add-on registration, an
+    operator, the exporter) left bpy half-initialised and crashed the process at exit (SIGSEGV,
+    or assorted exit codes). Here SIGINT only sets a flag: the fit operator's progress callback
+    cancels on it (``operators.ops.PROGRESS_HOOKS``) and :meth:`check`, called between the
+    stages, raises KeyboardInterrupt in plain Python, where the caller removes its temporaries.
+    """
+
+    def __init__(self):
+        self.flag = threading.Event()
+        self._old = None
+
+    def __enter__(self):
+        try:
+            self._old = signal.signal(signal.SIGINT, lambda *a: self.flag.set())
+        except ValueError:      # not the main thread: leave signals alone
+            self._old = None
+        return self
+
+    def hook(self, stage, fraction) -> bool:
+        return self.flag.is_set()
+
+    def check(self):
+        if self.flag.is_set():
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
 
 
 def save_blend(path: str) -> str:
@@ -414,6 +450,15 @@ def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
 # --------------------------------------------------------------------------
 
 def scan_from_file(path: str, frames=None, clips=()):
+    """See :func:`_scan_from_file`; Ctrl-C is a flag here too (:class:`_Interrupts`), raised as
+    KeyboardInterrupt once Blender's import and sampling have returned."""
+    with _Interrupts() as intr:
+        out = _scan_from_file(path, frames, clips)
+        intr.check()
+        return out
+
+
+def _scan_from_file(path: str, frames=None, clips=()):
     """Import an animated file or an OBJ/PLY sequence in a fresh scene and
     sample it into a tracked scan with ``bpy.ops.artdef.fields_from_file`` (the
     Fields from Animation code, over the file's own frames unless ``frames`` =
@@ -463,17 +508,32 @@ def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | No
     was sampled from an animated file (:func:`scan_from_file`); else a fresh scene gets the scan
     file's mesh. Nothing is fitted here: the .npz, the .blend and the exports hold the same
     numbers. Returns ``{"blend"|"glb"|"fbx"|"png": path}`` for those written (and
-    ``"rotation_only_error"``: (max, rms) % of the diagonal, with ``rotation_only``)."""
+    ``"rotation_only_error"``: (max, rms) % of the diagonal, with ``rotation_only``).
+
+    Ctrl-C (SIGINT) is caught as a flag for the whole Blender stage and raised as
+    KeyboardInterrupt between its steps (see :class:`_Interrupts`); the caller writes to
+    temporary paths and removes them then (``files.Outputs``)."""
+    with _Interrupts() as intr:
+        return _build_outputs(intr, scan_path, scan, result, blend, glb, png, fbx, mesh, rotation_only,
+                              load_index, frames_per_field)
+
+
+def _build_outputs(intr, scan_path, scan, result, blend, glb, png, fbx, mesh, rotation_only,
+                   load_index, frames_per_field):
     bpy = _bpy()
     import importlib  # noqa: PLC0415
 
+    intr.check()
     if mesh is None:  # a scan file: a fresh scene
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+        intr.check()
     module_name = ensure_registered()
+    intr.check()
     ops = importlib.import_module(module_name + ".operators.ops")
     io = importlib.import_module(module_name + ".operators.io")
     if mesh is None:
         mesh, _ = io.import_scan_file(bpy.context, os.path.abspath(scan_path))
+        intr.check()
     stored = io.read_scan(mesh)
     with bpy.context.temp_override(active_object=mesh, object=mesh,
                                    selected_objects=[mesh], selected_editable_objects=[mesh]):
@@ -481,6 +541,7 @@ def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | No
                          frames_per_field=frames_per_field,
                          auto_links=bool(getattr(result, "link_reason", "")),
                          seconds=float(result.timings.get("total", 0.0)))
+    intr.check()
     armature = _find_armature(mesh)
     if armature is not None:  # bones an animator can read: source joint names, else root-first
         with bpy.context.temp_override(active_object=mesh, object=mesh, selected_objects=[mesh]):
@@ -496,12 +557,16 @@ def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | No
         written["rotation_only_error"] = (float(worst), float(rms))
     if blend is not None:
         written["blend"] = save_blend(blend)
+        intr.check()
     if glb is not None:
         written["glb"] = export_rig(glb, mesh, "GLB")
+        intr.check()
     if fbx is not None:
         written["fbx"] = export_rig(fbx, mesh, "FBX")
+        intr.check()
     if png is not None:
         written["png"] = render_png(png, mesh, armature)
+        intr.check()
     return written
 
 

@@ -173,16 +173,27 @@ def write_scan(mesh, scan):
     mesh["artdef_scan_version"] = SCAN_VERSION
 
 
+def repeated_vertex_faces(faces):
+    """(T,) bool: triangles that use a vertex twice. The scan format allows them (degenerate,
+    zero area, as on the command line: the fit gives them their neighbours' link), but a Blender
+    polygon cannot repeat a vertex, so the imported mesh leaves them out; they carry no area,
+    hence no weight in the fit."""
+    f = np.asarray(faces)
+    return (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+
+
 def new_mesh_from_scan(name, scan):
-    """A new mesh datablock with the scan's geometry and stored fields."""
+    """A new mesh datablock with the scan's geometry and stored fields (triangles that repeat a
+    vertex left out: :func:`repeated_vertex_faces`)."""
     verts = np.ascontiguousarray(scan.vertices, dtype=np.float32)
     faces = np.ascontiguousarray(scan.faces, dtype=np.int32)
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
         raise _scan.ScanError("faces must be a non-empty (T, 3) array of triangles")
     if faces.min() < 0 or faces.max() >= len(verts):
         raise _scan.ScanError("a face refers to a vertex that does not exist")
-    if np.any((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])):
-        raise _scan.ScanError("a face uses the same vertex twice")
+    faces = np.ascontiguousarray(faces[~repeated_vertex_faces(faces)])
+    if len(faces) == 0:
+        raise _scan.ScanError("every triangle repeats a vertex (zero area)")
     t = len(faces)
     mesh = bpy.data.meshes.new(name)
     try:

@@ -106,6 +106,10 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
             self.report({'ERROR'}, f"Could not read '{self.filepath}': {err}")
             return {'CANCELLED'}
         loads = 0 if scan.load_vertices is None else len(scan.load_vertices)
+        repeated = int(np.count_nonzero(io.repeated_vertex_faces(scan.faces)))
+        if repeated:
+            self.report({'WARNING'}, f"{repeated} triangle(s) use a vertex twice (zero area): left out "
+                                     f"of the mesh; the fit gives them no weight")
         self.report({'INFO'}, f"Imported '{obj.name}': {len(scan.vertices)} vertices, "
                               f"{scan.n_fields} {scan.kind} fields, {loads} load points "
                               f"({time.perf_counter() - t0:.2f} s)")
@@ -320,7 +324,8 @@ def store_summary(obj, result, model, scan, vertex_residual, *, load_index=0, fr
     st.fit_seconds = seconds
     timings = getattr(model, "timings", None) or getattr(result, "timings", None) or {}
     st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
-    st.fit_articulation_percent = float(model.articulation_error_percent)
+    e = float(model.articulation_error_percent)
+    st.fit_articulation_percent = e if e == e else -1.0   # −1: undefined (one field), shown "n/a"
     res = vertex_residual
     st.fit_residual_max = float(res.max()) if len(res) else 0.0
     st.fit_residual_mean = float(res.mean()) if len(res) else 0.0
@@ -514,7 +519,7 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
             self.report({'INFO'}, f"ArtDef: {note}")
         self.report({'INFO'}, f"'{obj.name}': {model.n_links} links, rms articulation "
                               f"{model.rms_articulation:.4g} "
-                              f"({model.articulation_error_percent:.2f}%), rms total "
+                              f"({model.error_percent_text()}), rms total "
                               f"{model.rms_total:.4g} ({job.seconds:.2f} s)"
                               + ("; reduced method on patches" if job.reduced else "")
                               + (f"; {obj.artdef.fit_replay}" if obj.artdef.fit_replay else ""))

@@ -430,6 +430,12 @@ def find_sequence(path):
                 groups.setdefault((parts[0], parts[2].lower()), []).append(fn)
         if not groups:
             raise SequenceError(f"no numbered OBJ or PLY files (like pose_000.obj) in {path}")
+        prefixes = {p for p, _ in groups}
+        if len(groups) > 1 and len(prefixes) == 1:
+            p0 = next(iter(prefixes))
+            exts = " and ".join(sorted(e for _, e in groups))
+            raise SequenceError(f"{path}: the sequence {p0}### mixes {exts} files; a sequence "
+                                f"is one format (convert or move the others)")
         if len(groups) > 1:
             names = ", ".join(f"{p}###{e}" for p, e in sorted(groups))
             raise SequenceError(f"{path} holds several sequences ({names}): pick one file")
@@ -449,12 +455,19 @@ def find_sequence(path):
         if ext.lower() not in EXTENSIONS:
             raise SequenceError(f"{filename}: unsupported file type {ext!r} (OBJ or PLY)")
     found = {}
-    for fn in os.listdir(directory or "."):
+    others = []
+    for fn in sorted(os.listdir(directory or ".")):
         parts = split_number(fn)
         if parts is not None and parts[0] == prefix and parts[2].lower() == ext.lower():
             if parts[1] in found:
                 raise SequenceError(f"{fn} and {found[parts[1]]} have the same number {parts[1]}")
             found[parts[1]] = fn
+        elif parts is not None and parts[0] == prefix and parts[2].lower() in EXTENSIONS:
+            others.append(fn)
+    if others:   # frames of the other format would silently be left out
+        raise SequenceError(f"the sequence {prefix}### mixes {ext.lower()} and "
+                            f"{os.path.splitext(others[0])[1].lower()} files ({others[0]}, ...); "
+                            f"a sequence is one format (convert or move the others)")
     return [os.path.join(directory, found[k]) for k in sorted(found)]
 
 

@@ -129,7 +129,8 @@ class ARTDEF_PT_main(bpy.types.Panel):
                         curve.label(text=line)
             if st.fit_p_max > 0:
                 col.label(text=f"Hardening p_max: {st.fit_p_max:g}")
-            col.label(text=f"Articulation error: {st.fit_articulation_percent:.2f}%")
+            e = st.fit_articulation_percent
+            col.label(text=f"Articulation error: {e:.2f}%" if e >= 0 else "Articulation error: n/a (one field)")
             col.label(text=f"RMS articulation: {st.fit_rms_articulation:.4g}")
             col.label(text=f"RMS total: {st.fit_rms_total:.4g}")
             if st.fit_diagonal > 0:

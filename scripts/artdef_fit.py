@@ -32,4 +32,8 @@ def run(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(run())
+    code = run()
+    if "bpy" in sys.modules:   # no SIGINT inside Blender's teardown (see artdef_addon/__main__.py)
+        import signal
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)

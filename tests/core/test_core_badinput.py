@@ -1,0 +1,458 @@
+"""Bad input never costs the user a file and always gets one clear line (issue 15).
+
+Every malformed file, unusable output path and out-of-range number ends with exit 2 and exactly one
+stderr line naming the file or option; the input is never changed; a failed or interrupted write
+leaves the earlier output byte-identical and no temporary behind; legal but unusual meshes fit.
+"""
+import errno
+import hashlib
+import importlib.util
+import io
+import os
+import resource
+import signal
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+
+from artdef_addon import cli, files, fit as F, samples, scan as S
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def digest(path):
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def run(capsys, *argv):
+    """cli.main in-process: (exit code, stdout, stderr lines)."""
+    code = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, [line for line in err.splitlines() if line.strip()]
+
+
+def leftovers(directory):
+    return [n for n in os.listdir(directory) if n.startswith(".artdef-tmp")]
+
+
+def npy(arr):
+    f = io.BytesIO()
+    np.save(f, arr)
+    return f.getvalue()
+
+
+def raw_npz(path, members):
+    with zipfile.ZipFile(path, "w") as z:
+        for key, data in members.items():
+            z.writestr(key, data)
+    return path
+
+
+@pytest.fixture(scope="module")
+def rod():
+    return samples.make("rod")
+
+
+@pytest.fixture
+def rod_file(rod, tmp_path):
+    p = tmp_path / "rod.npz"
+    S.save_scan(p, rod)
+    return p
+
+
+def _members(rod, **over):
+    m = {"vertices.npy": npy(rod.vertices), "faces.npy": npy(rod.faces),
+         "displacements.npy": npy(rod.displacements)}
+    m.update(over)
+    return {k: v for k, v in m.items() if v is not None}
+
+
+def _huge_header(rod):
+    data = npy(rod.vertices)
+    return data.replace(repr(rod.vertices.shape).encode(), b"(9999999999, 3)", 1)
+
+
+def bad_scans(rod, d):
+    """name → (path, what the line must say)."""
+    good = d / "good.npz"
+    S.save_scan(good, rod)
+    raw = good.read_bytes()
+    cases = {}
+    (d / "truncated.npz").write_bytes(raw[: len(raw) // 2])
+    cases["truncated"] = (d / "truncated.npz", "damaged or truncated")
+    np.save(d / "plain.npy", rod.vertices)
+    os.replace(d / "plain.npy", d / "npy.npz")
+    cases["npy under npz name"] = (d / "npy.npz", "single .npy array")
+    (d / "text.npz").write_text("vertices 1 2 3\n")
+    cases["text file"] = (d / "text.npz", "a text file, not a .npz archive")
+    (d / "empty.npz").write_bytes(b"")
+    cases["empty"] = (d / "empty.npz", "empty")
+    cases["enormous header"] = (raw_npz(d / "huge.npz", _members(rod, **{"vertices.npy": _huge_header(rod)})),
+                                "declares shape (9999999999, 3)")
+    cases["string probe_load"] = (raw_npz(d / "sprobe.npz", _members(rod, **{"probe_load.npy": npy(np.array("abc"))})),
+                                  "'probe_load' must be a single number")
+    cases["string vertices"] = (raw_npz(d / "sverts.npz", _members(
+        rod, **{"vertices.npy": npy(rod.vertices.astype(str))})), "vertices must be numeric")
+    cases["pickled member"] = (raw_npz(d / "pickle.npz", _members(
+        rod, **{"faces.npy": npy(np.array([{"a": 1}], dtype=object))})), "Python objects")
+    cases["wrong member names"] = (raw_npz(d / "names.npz", _members(
+        rod, **{"vertices.npy": None, "verts.npy": npy(rod.vertices)})), "no 'vertices' array")
+    cases["not an npy member"] = (raw_npz(d / "member.npz", _members(rod, **{"notes.txt": b"hi"})),
+                                  "member 'notes.txt' is not a .npy array")
+    cases["truncated member"] = (raw_npz(d / "tmember.npz", _members(
+        rod, **{"vertices.npy": npy(rod.vertices)[:-40]})), "truncated")
+    cases["NaN"] = (raw_npz(d / "nan.npz", _members(
+        rod, **{"displacements.npy": npy(np.where(np.arange(3)[:, None, None] == 1, np.nan,
+                                                  rod.displacements))})), "NaN")
+    cases["index out of range"] = (raw_npz(d / "index.npz", _members(
+        rod, **{"faces.npy": npy(rod.faces + 1000)})), "out of range")
+    os.mkdir(d / "dir.npz")
+    cases["directory"] = (d / "dir.npz", "is a directory")
+    cases["missing"] = (d / "missing.npz", "no such file")
+    return cases
+
+
+CASES = ["truncated", "npy under npz name", "text file", "empty", "enormous header", "string probe_load",
+         "string vertices", "pickled member", "wrong member names", "not an npy member", "truncated member",
+         "NaN", "index out of range", "directory", "missing"]
+
+
+# (fit reads a directory as an OBJ/PLY sequence folder, in Blender: not this boundary's case)
+@pytest.mark.parametrize("case,command", [(c, m) for c in CASES for m in ("fit", "info")
+                                          if (c, m) != ("directory", "fit")])
+def test_bad_scan_file_one_line_exit_2_nothing_written(rod, tmp_path, capsys, case, command):
+    path, says = bad_scans(rod, tmp_path)[case]
+    before = digest(path) if os.path.isfile(path) else None
+    out = tmp_path / "out.npz"
+    argv = ["fit", path, "--links", "3", "-o", out] if command == "fit" else ["info", path]
+    code, _, err = run(capsys, *argv)
+    assert code == 2
+    assert len(err) == 1, err
+    assert err[0].startswith("artdef: error: ") and os.path.basename(path) in err[0] and says in err[0], err
+    assert "Traceback" not in err[0] and "pickled data" not in err[0] or case == "pickled member"
+    assert not out.exists() and leftovers(tmp_path) == []
+    if before is not None:
+        assert digest(path) == before
+
+
+def test_load_scan_is_the_boundary_blender_uses(rod, tmp_path):
+    """scan.load_scan (what the Blender import operator calls) raises the same one-line BadFile."""
+    for case, (path, says) in bad_scans(rod, tmp_path).items():
+        with pytest.raises(files.BadFile) as exc:
+            S.load_scan(path)
+        msg = str(exc.value)
+        assert "\n" not in msg and says in msg and os.path.basename(path) in msg, (case, msg)
+
+
+def test_enormous_header_is_refused_before_allocating(rod, tmp_path, monkeypatch):
+    path = raw_npz(tmp_path / "huge.npz", _members(rod, **{"vertices.npy": _huge_header(rod)}))
+    calls = []
+    real = np.frombuffer
+    monkeypatch.setattr(files.np, "frombuffer", lambda *a, **k: calls.append(1) or real(*a, **k))
+    with pytest.raises(files.BadFile, match=r"239,999,999,976 bytes\) but holds"):
+        files.read_npz(path)
+    assert calls == []      # refused from the header alone
+
+
+@pytest.fixture(scope="module")
+def result_file(rod, tmp_path_factory):
+    p = tmp_path_factory.mktemp("res") / "res.npz"
+    F.save_result(p, F.fit(rod, 3))
+    return p
+
+
+@pytest.mark.parametrize("damage,says", [
+    (lambda d: d.pop("joints"), "'joints', which is missing"),
+    (lambda d: d.update(rms_total=np.array("x")), "'rms_total' must be a single number"),
+    (lambda d: d.update(parents=np.array([0.5, 1.0, 2.0])), "'parents' must be a 1-D integer array"),
+    (lambda d: d.update(face_labels=d["face_labels"] + 7), "refer to links that do not exist"),
+    (lambda d: d.pop("mode"), "text value 'mode'"),
+])
+def test_bad_result_file(result_file, tmp_path, capsys, damage, says):
+    d = dict(np.load(result_file))
+    damage(d)
+    p = tmp_path / "bad_result.npz"
+    np.savez(p, **d)
+    before = digest(p)
+    code, _, err = run(capsys, "info", p)
+    assert code == 2 and len(err) == 1 and says in err[0] and "bad_result.npz" in err[0], err
+    with pytest.raises(files.BadFile, match=says.replace("(", r"\(").replace(")", r"\)")):
+        F.load_result(p)
+    assert digest(p) == before
+
+
+def test_result_round_trip_and_info(result_file, capsys):
+    code, out, err = run(capsys, "info", result_file)
+    assert code == 0 and err == [] and "fit result" in out and "links: 3" in out
+
+
+# ---------------------------------------------------------------- output paths
+def _no_fit(monkeypatch):
+    def boom(*a, **k):
+        raise AssertionError("the fit ran before the output paths were checked")
+    monkeypatch.setattr(F, "Segmenter", boom)
+
+
+def test_output_is_the_input_refused_before_work(rod_file, tmp_path, capsys, monkeypatch):
+    _no_fit(monkeypatch)
+    before = digest(rod_file)
+    os.link(rod_file, tmp_path / "hard.npz")
+    os.symlink(rod_file, tmp_path / "soft.npz")
+    for argv, says in [
+        (["-o", rod_file], "would overwrite the input"),
+        (["-o", tmp_path / "sub" / ".." / "rod.npz"], "does not exist"),
+        (["-o", tmp_path / "hard.npz"], "would overwrite the input"),
+        (["-o", tmp_path / "soft.npz"], "would overwrite the input"),
+        (["--blend", rod_file], "must end in .blend"),
+        (["--glb", tmp_path / "x.gltf"], "must end in .glb"),
+        (["--png", tmp_path / "x.jpg"], "must end in .png"),
+        (["-o", tmp_path / "nodir" / "r.npz"], "does not exist"),
+        (["-o", tmp_path], "is a directory"),
+        (["-o", tmp_path / "a.blend", "--blend", tmp_path / "a.blend"], "name the same file"),
+    ]:
+        code, _, err = run(capsys, "fit", rod_file, "--links", "3", *argv)
+        assert code == 2 and len(err) == 1 and says in err[0], (argv, err)
+    assert digest(rod_file) == before
+    assert sorted(os.listdir(tmp_path)) == ["hard.npz", "rod.npz", "soft.npz"]
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write into a read-only directory")
+def test_read_only_directory_refused_before_work(rod_file, tmp_path, capsys, monkeypatch):
+    _no_fit(monkeypatch)
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        code, _, err = run(capsys, "fit", rod_file, "--links", "3", "-o", ro / "r.npz")
+    finally:
+        ro.chmod(0o700)
+    assert code == 2 and len(err) == 1 and "is not writable" in err[0]
+
+
+def test_output_written_with_exactly_the_name_given(rod_file, tmp_path, capsys):
+    out = tmp_path / "result.dat"
+    code, stdout, err = run(capsys, "fit", rod_file, "--links", "3", "-o", out, "-q")
+    assert code == 0 and err == []
+    assert sorted(os.listdir(tmp_path)) == ["result.dat", "rod.npz"]
+    assert F.load_result(out).n_links == 3
+    code, stdout, err = run(capsys, "sample", "rod", "-o", tmp_path / "scan.bin")
+    assert code == 0 and "wrote" in stdout and (tmp_path / "scan.bin").is_file()
+    assert S.load_scan(tmp_path / "scan.bin").n_vertices == 297
+
+
+# ---------------------------------------------------------------- failed or interrupted writes
+@pytest.mark.parametrize("failure,code,says", [
+    (OSError(errno.ENOSPC, "No space left on device"), 1, "No space left on device"),
+    (KeyboardInterrupt(), 130, "interrupted"),
+])
+def test_failed_overwrite_keeps_the_earlier_result(rod_file, tmp_path, capsys, monkeypatch, failure, code, says):
+    out = tmp_path / "out.npz"
+    assert run(capsys, "fit", rod_file, "--links", "3", "-o", out, "-q")[0] == 0
+    before = digest(out)
+    real = files._savez
+
+    def half_then_fail(f, arrays, compress):
+        real(f, arrays, compress)
+        f.truncate(f.tell() // 2)       # a partial file, as a full disk leaves
+        raise failure
+    monkeypatch.setattr(files, "_savez", half_then_fail)
+    got, _, err = run(capsys, "fit", rod_file, "--links", "2", "-o", out, "-q")
+    assert got == code and len(err) == 1 and says in err[0], err
+    assert digest(out) == before and F.load_result(out).n_links == 3
+    assert leftovers(tmp_path) == []
+
+
+def test_file_size_limit_keeps_the_earlier_result(rod_file, tmp_path):
+    """A real failing write: RLIMIT_FSIZE below the result's size (write → EFBIG)."""
+    out = tmp_path / "out.npz"
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    cmd = [sys.executable, "-m", "artdef_addon", "fit", str(rod_file), "--links", "3", "-q", "-o", str(out)]
+    assert subprocess.run(cmd, env=env, capture_output=True, timeout=300).returncode == 0
+    before = digest(out)
+    cmd[cmd.index("3")] = "2"
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.RLIM_INFINITY))
+    p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, preexec_fn=limit)
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 1 and len(lines) == 1 and "File too large" in lines[0], p.stderr
+    assert digest(out) == before and leftovers(tmp_path) == []
+
+
+def _interrupt_at(cmd, marker, tmp_path, env=None):
+    """Run ``cmd``, send SIGINT when stdout prints a line containing ``marker``; (code, stderr)."""
+    env = dict(os.environ, PYTHONPATH=ROOT, PYTHONUNBUFFERED="1", **(env or {}))
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                         cwd=tmp_path)
+    seen = []
+    for line in p.stdout:
+        seen.append(line)
+        if marker in line:
+            p.send_signal(signal.SIGINT)
+            break
+    try:
+        _, err = p.communicate(timeout=600)
+    finally:
+        p.kill()
+    assert any(marker in s for s in seen), (seen, err)
+    return p.returncode, err
+
+
+def test_ctrl_c_during_the_fit(tmp_path):
+    scan = tmp_path / "br.npz"
+    S.save_scan(scan, samples.make("branching"))
+    out = tmp_path / "out.npz"
+    out.write_bytes(b"earlier result")
+    code, err = _interrupt_at([sys.executable, "-m", "artdef_addon", "fit", str(scan), "--links", "auto",
+                               "-o", str(out)], "estimate:", tmp_path)
+    lines = err.strip().splitlines()
+    assert code == 130 and lines == ["artdef: error: interrupted; no file was written or changed"], err
+    assert out.read_bytes() == b"earlier result" and leftovers(tmp_path) == []
+
+
+# ---------------------------------------------------------------- numeric options
+@pytest.mark.parametrize("argv,says", [
+    (["--links", "0"], "--links must be at least 1"),
+    (["--links", "-3"], "--links must be at least 1"),
+    (["--links", "2.5"], "--links must be a whole number"),
+    (["--links", "many"], "or 'auto'"),
+    (["--links", "585"], "at most 584 (the scan's 584 non-degenerate triangles)"),
+    (["--links", "auto", "--max-links", "0"], "--max-links must be at least 1"),
+    (["--links", "auto", "--max-links", "1000000"], "--max-links must be at most 100"),
+    (["--links", "3", "--p-max", "1"], "--p-max must be above 1"),
+    (["--links", "3", "--p-max", "nan"], "--p-max must be a finite number"),
+    (["--links", "3", "--memory-budget", "0"], "--memory-budget must be above 0"),
+    (["--links", "3", "--memory-budget", "inf"], "finite"),
+    (["--links", "3", "--max-links", "x"], "--max-links: invalid int value"),
+    (["--links", "3", "--mode", "nope"], "invalid choice"),
+])
+def test_fit_numbers_range_checked(rod_file, tmp_path, capsys, monkeypatch, argv, says):
+    _no_fit(monkeypatch)
+    code, _, err = run(capsys, "fit", rod_file, *argv, "-o", tmp_path / "o.npz")
+    assert code == 2 and len(err) == 1 and says in err[0], err
+    assert not (tmp_path / "o.npz").exists()
+
+
+def test_max_links_is_bounded_by_the_triangles(tmp_path, capsys, monkeypatch):
+    """A 4-triangle scan: --max-links 50 is refused at once (more counts than triangles)."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
+    p = tmp_path / "tiny.npz"
+    S.save_scan(p, S.Scan(v, f, displacements=np.ones((2, 6, 3)) * [[[0.1]], [[0.2]]]))
+    monkeypatch.setattr(F, "Segmenter", lambda *a, **k: pytest.fail("fitted despite a bad --max-links"))
+    code, _, err = run(capsys, "fit", p, "--links", "auto", "--max-links", "50")
+    assert code == 2 and "--max-links must be at most 4 (the scan's 4 non-degenerate triangles)" in err[0]
+    monkeypatch.undo()
+    # the default (30) is clamped to the triangles, not refused
+    code, out, err = run(capsys, "fit", p, "--links", "auto", "-o", tmp_path / "r.npz")
+    assert code == 0 and err == [] and 1 <= F.load_result(tmp_path / "r.npz").n_links <= 4
+
+
+@pytest.mark.parametrize("argv,says", [
+    (["rod", "--fields", "0"], "--fields must be at least 1"),
+    (["rod", "--fields", "100000"], "--fields must be at most 1000"),
+    (["branching", "--noise", "nan"], "--noise must be a finite number"),
+    (["branching", "--noise", "-0.1"], "--noise must be at least 0"),
+    (["rod", "--seed", "-1"], "--seed must be at least 0"),
+    (["rod", "--noise", "0.1"], "apply to the branching sample only"),
+    (["greens_rod", "--fields", "3"], "does not apply to greens_rod"),
+    (["nosuch"], "unknown sample"),
+])
+def test_sample_numbers_range_checked(tmp_path, capsys, argv, says):
+    code, _, err = run(capsys, "sample", *argv, "-o", tmp_path / "s.npz")
+    assert code == 2 and len(err) == 1 and says in err[0], err
+    assert not (tmp_path / "s.npz").exists()
+
+
+def test_option_validators():
+    r = files.IntRange(1, 30).within(10, " (triangles)")
+    assert r.check("--k", "7") == 7 and r.check("--k", 10) == 10
+    for bad, says in [(0, "at least 1"), (11, "at most 10 (triangles)"), (True, "whole number"),
+                      ("1e400", "whole number"), (2.5, "whole number")]:
+        with pytest.raises(files.OptionError, match=says.replace("(", r"\(").replace(")", r"\)")):
+            r.check("--k", bad)
+    assert files.IntRange(1, 30).within(100).hi == 30
+    f = files.FloatRange(0.0, lo_open=True)
+    assert f.check("--x", "0.5") == 0.5
+    for bad in ("0", "-1", "nan", "inf", "abc", None):
+        with pytest.raises(files.OptionError):
+            f.check("--x", bad)
+
+
+# ---------------------------------------------------------------- legal but unusual meshes
+def test_unreferenced_vertices_fit_with_sensible_weights(rod):
+    """Vertices in no triangle (legal in the format) used to give 'SVD did not converge' (a 0/0
+    skin row). Copies of mesh vertices, moving with them but in no triangle, now get weights whose
+    skin reproduces them as well as the originals."""
+    src = np.array([5, 150, 290])
+    v = np.vstack([rod.vertices, rod.vertices[src]])
+    d = np.concatenate([rod.displacements, rod.displacements[:, src]], axis=1)
+    for skin in ("refined", "seam"):
+        r = F.fit(S.Scan(v, rod.faces, displacements=d), 3, skin=skin)
+        assert np.all(np.isfinite(r.weights)) and np.allclose(r.weights.sum(axis=1), 1.0)
+        assert np.all(np.isfinite(r.residual))
+        err = np.linalg.norm(r.residual, axis=2)               # (P, N) rest-space residual
+        extent = np.ptp(rod.vertices, axis=0).max()
+        if skin == "refined":   # the data choose their links: as good as the originals
+            assert np.all(err[:, -3:] <= err[:, src] + 1e-3 * extent)
+
+
+def test_unusual_meshes_fit_on_the_command_line(rod, tmp_path, capsys):
+    faces = np.vstack([rod.faces, [[10, 10, 11]], [[20, 21, 21]], [[0, 1, 1]]])
+    cases = {
+        "degenerate": S.Scan(rod.vertices, faces, displacements=rod.displacements),
+        "pieces": samples.make("branching", disconnected=True),
+        "unreferenced": S.Scan(np.vstack([rod.vertices, [[50.0, 50, 50]]]), rod.faces,
+                               displacements=np.concatenate([rod.displacements, np.zeros((3, 1, 3))], 1)),
+    }
+    for name, sc in cases.items():
+        p = tmp_path / f"{name}.npz"
+        S.save_scan(p, sc)
+        code, out, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / f"{name}_r.npz")
+        assert code == 0 and err == [], (name, err)
+        r = F.load_result(tmp_path / f"{name}_r.npz")
+        assert r.face_labels.shape == (sc.n_faces,) and np.isfinite(r.rms_articulation), name
+
+
+def test_single_field_error_is_not_available_not_zero(rod, tmp_path, capsys):
+    p = tmp_path / "one.npz"
+    S.save_scan(p, S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[1:2]))
+    code, out, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / "r.npz")
+    assert code == 0 and err == []
+    assert "(n/a (one field))" in out and "0.00%" not in out
+    r = F.load_result(tmp_path / "r.npz")
+    assert np.isnan(r.articulation_error_percent) and "n/a (one field)" in r.summary()
+    # a two-field fit still reports its percentage
+    r2 = F.fit(S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[:2]), 3)
+    assert np.isfinite(r2.articulation_error_percent) and f"{r2.articulation_error_percent:.2f}%" in r2.summary()
+    # --links auto on one field stays bounded (the undefined error counts as nothing to explain)
+    code, out, err = run(capsys, "fit", p, "--links", "auto", "--max-links", "8", "-q")
+    assert code == 0 and err == []
+
+
+# ---------------------------------------------------------------- mesh sequences
+def _sequence_module():
+    spec = importlib.util.spec_from_file_location("artdef_seq", os.path.join(ROOT, "operators", "sequence.py"))
+    m = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(m)
+    return m
+
+
+def test_mixed_obj_ply_sequence_is_refused(tmp_path):
+    seq = _sequence_module()
+    obj = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+    ply = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+           "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    (tmp_path / "pose_000.obj").write_text(obj)
+    (tmp_path / "pose_001.obj").write_text(obj)
+    (tmp_path / "pose_002.ply").write_text(ply)
+    with pytest.raises(seq.SequenceError, match=r"pose_### mixes .obj and .ply files \(pose_002.ply"):
+        seq.find_sequence(str(tmp_path / "pose_000.obj"))
+    with pytest.raises(seq.SequenceError, match=r"mixes .obj and .ply files; a sequence is one format"):
+        seq.find_sequence(str(tmp_path))
+    (tmp_path / "pose_002.ply").unlink()
+    assert len(seq.find_sequence(str(tmp_path / "pose_000.obj"))) == 2
