@@ -192,7 +192,7 @@ def test_cli_refuses_a_bad_option_in_one_line(tmp_path, capsys):
     S.save_scan(path, samples.make("rod"))
     assert cli.main(["fit", str(path), "--links", "3", "--p-max", "0.5", "-o", str(tmp_path / "r.npz")]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("artdef: error: p_max must be a number greater than 1") and "\n" not in err
+    assert err.startswith("artdef: error: --p-max must be above 1") and "\n" not in err
     assert not (tmp_path / "r.npz").exists()
 
 
