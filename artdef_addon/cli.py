@@ -319,13 +319,14 @@ def _cmd_fit(a) -> int:
         if a.output:
             out.write_npz(a.output, fit_module.result_arrays(result), compress=True)
         if blender:
+            # temporaries first (registered for clean-up), then the Blender stage: the rig is built
+            # from this result, one fit per command
+            tmp = {k: v and out.path(v) for k, v in (("blend", a.blend), ("glb", a.glb), ("png", a.png),
+                                                     ("fbx", a.fbx))}
             if not a.quiet:
                 print("building the Blender outputs", flush=True)
-            # the rig is built from this result: one fit per command
-            made = headless.build_outputs(a.scan, sc, result, a.blend and out.path(a.blend),
-                                          a.glb and out.path(a.glb), a.png and out.path(a.png),
-                                          fbx=a.fbx and out.path(a.fbx), mesh=prepared,
-                                          rotation_only=a.rotation_only)
+            made = headless.build_outputs(a.scan, sc, result, tmp["blend"], tmp["glb"], tmp["png"],
+                                          fbx=tmp["fbx"], mesh=prepared, rotation_only=a.rotation_only)
             rot_err = made.pop("rotation_only_error", None) if made else None
         written = out.commit()
     _committed.extend(written)
