@@ -46,18 +46,20 @@ def fingerprint(scan: Scan) -> str:
     return h.hexdigest()
 
 
-def plan(triangles: int, fields: int, vertices: int, kind: str, options: FitOptions | None = None):
+def plan(triangles: int, fields: int, vertices: int, kind: str, options: FitOptions | None = None,
+         **price):
     """What a fit with ``options`` will do, from counts only (no fit): ``(estimate, reduce_arg)``,
     the :class:`cost.Estimate` of the method that will run (``estimate.reduced``) and the
-    segmenter's switch (None: decided by the budget, and noted)."""
+    segmenter's switch (None: decided by the budget, and noted). ``price``: ``links=`` /
+    ``auto=`` of :func:`cost.estimate` (the whole fit's time for that count or the search)."""
     o = (options or FitOptions()).resolved(kind)
     budget = o.budget_bytes
     if o.reduce == "off":
-        return _cost.estimate(triangles, fields, vertices, o.strategy, float("inf")), False
+        return _cost.estimate(triangles, fields, vertices, o.strategy, float("inf"), **price), False
     if o.reduce == "on":
         units = min(triangles, _cost.reduced_units(budget, fields))
-        return _cost.estimate(triangles, fields, vertices, o.strategy, 0.0, units=units), True
-    return _cost.estimate(triangles, fields, vertices, o.strategy, budget), None
+        return _cost.estimate(triangles, fields, vertices, o.strategy, 0.0, units=units, **price), True
+    return _cost.estimate(triangles, fields, vertices, o.strategy, budget, **price), None
 
 
 def _key(scan: Scan, o: FitOptions, reduced: bool):

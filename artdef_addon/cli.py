@@ -304,7 +304,9 @@ def _cmd_fit(a) -> int:
     t_fit = time.perf_counter()
     try:
         if not a.quiet:
-            est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options)
+            # priced for this link count (or the --links auto search)
+            est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
+                              links=None if auto else links, auto=auto)
             print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
         result = api.fit(sc, "auto" if auto else links, options)
     except OptionsError as exc:

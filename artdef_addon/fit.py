@@ -175,8 +175,8 @@ class Segmenter:
         self.estimate = est
         if reduce is None:
             reduce = est.reduced
-            if reduce:
-                need = _cost.full_memory(Tv, scan.n_fields, scan.n_vertices)
+            need = _cost.full_memory(Tv, scan.n_fields, scan.n_vertices)
+            if reduce and need > budget:
                 self.notes.append(f"the full method needs about {_cost.format_bytes(need)} "
                                   f"(budget {_cost.format_bytes(budget)}): using the reduced method on patches")
         self.reduced = bool(reduce)

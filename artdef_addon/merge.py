@@ -362,7 +362,7 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     for _ in range(RELABEL_ROUNDS):
         if np.array_equal(new, labels):
             break
-        w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS)
+        w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w)
         if not e1 < e:
             break
         labels, w, R, t, e = new, w1, R1, t1, e1

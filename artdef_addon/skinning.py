@@ -319,6 +319,9 @@ def _candidates(vertices, faces, labels, L, rings, radius, ground):
     return candidate_links(vertices, faces, inc, rings=rings, radius=radius)
 
 
+#: vertices per block of the refined skin's weight solve (bounded memory at scale)
+SOLVE_BLOCK = 32768
+
 #: a vertex's candidate links: the ones whose own motion explains it best, among which its (at most
 #: max_influences) skin links are chosen (see :func:`refined_weights`)
 POOL = 8
@@ -363,17 +366,28 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     order = np.argsort(~mask, axis=0, kind="stable")[:m]                # candidate link ids (m, N)
     valid = np.take_along_axis(mask, order, axis=0).T                   # (N, m)
     cols = order.T                                                       # (N, m)
-    # Gram systems of the candidates (memory O(N m²), no pass over the fields)
-    Q = _pair_quadratic(xh, G, cols)
+    # Gram systems of the candidates (no pass over the fields), solved in vertex blocks so that
+    # the O(N m²) systems and the solver's work arrays stay bounded at scale (rows are independent:
+    # the same weights as one batch); kept whole only when the details are asked for (swaps, which
+    # run on small scans only)
     q = np.take_along_axis(q_all, cols, axis=1)
     w0 = None if w_init is None else np.take_along_axis(w_init, cols, axis=1) * valid
-    w = simplex_least_squares(Q, q, valid, max_support=max_influences, w0=w0)
     out = np.zeros((N, L))
-    np.put_along_axis(out, cols, w, axis=1)
-    out[out < 1e-6] = 0.0
-    out /= out.sum(axis=1, keepdims=True)
-    wc = np.take_along_axis(out, cols, axis=1)
-    total = float(np.sum(np.einsum("na,nab,nb->n", wc, Q, wc) - 2 * np.einsum("na,na->n", q, wc) + xx))
+    wc = np.zeros((N, m))
+    block = N if details else SOLVE_BLOCK
+    Q = _pair_quadratic(xh, G, cols) if details else None
+    total = 0.0
+    for s in range(0, N, block):
+        e = min(N, s + block)
+        Qb = Q[s:e] if details else _pair_quadratic(xh[s:e], G, cols[s:e])
+        wb = simplex_least_squares(Qb, q[s:e], valid[s:e], max_support=max_influences,
+                                   w0=None if w0 is None else w0[s:e])
+        wb[wb < 1e-6] = 0.0
+        wb /= wb.sum(axis=1, keepdims=True)
+        wc[s:e] = wb
+        total += float(np.sum(np.einsum("na,nab,nb->n", wb, Qb, wb) - 2 * np.einsum("na,na->n", q[s:e], wb)
+                              + xx[s:e]))
+    np.put_along_axis(out, cols, wc, axis=1)
     if details:
         return out, max(total, 0.0), {"cols": cols, "valid": valid, "Q": Q, "q": q, "xx": xx, "wc": wc, "err": err}
     return out, max(total, 0.0)
@@ -458,7 +472,8 @@ def alternate(vertices, fields, faces, labels, R, t, iterations: int = 30,
     (SSDR / Dem Bones) do, keeping artdef's links as the candidate structure. Stops after
     ``iterations`` rounds or when a round lowers the squared articulation error by less than a
     fraction ``tol``. Returns ``(weights, R, t)``; the error never increases from one step to
-    the next (each step is an exact minimiser given the other).
+    the next (each step is an exact minimiser given the other). ``w_init`` (N, L): feasible weights
+    to warm-start the first weight solve from (the active set's start; see :func:`simplex_least_squares`).
     """
     return alternate_scored(vertices, fields, faces, labels, R, t, iterations, tol, radius, **kw)[:3]
 
@@ -472,7 +487,7 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
     kw["details"] = details
     L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
     kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
-    w, e, *info = _refine(vertices, fields, faces, labels, R, t, **kw)
+    w, e, *info = _refine(vertices, fields, faces, labels, R, t, w_init=kw.pop("w_init", None), **kw)
     for _ in range(iterations):
         R1, t1 = update_motions(vertices, fields, w, R, t)
         w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, w_init=w, **kw)

@@ -173,7 +173,9 @@ def _auto_links_fn():
             choice = choose_links(seg, max_links=m)
         except Exception as exc:  # noqa: BLE001
             return dict(error=f"{type(exc).__name__}: {exc}")
-        return dict(links=int(choice.links), seconds=time.perf_counter() - t0, max_links=m)
+        # a whole --links auto run: the chooser plus the segmenter's features and tree it reuses
+        secs = time.perf_counter() - t0 + seg.timings.get("features", 0.0) + seg.timings.get("cluster", 0.0)
+        return dict(links=int(choice.links), seconds=secs, max_links=m)
     return run
 
 
@@ -259,7 +261,9 @@ def _fmt_auto(row) -> str:
     if "links" not in au:
         return "failed"
     off = 100.0 * (au["links"] - row["L"]) / row["L"]
-    return f"{au['links']} ({off:+.0f}%)"
+    r0 = next((v for k, v in row.items() if k.startswith("artdef") and isinstance(v, dict)), None)
+    ratio = f", {au['seconds'] / r0['seconds']:.1f}× the fixed-count fit" if r0 and r0.get("seconds") else ""
+    return f"{au['links']} ({off:+.0f}%), {au['seconds']:.1f} s{ratio}"
 
 
 def line(row, variants) -> str:
@@ -290,7 +294,7 @@ def tables(rows, variants) -> str:
     head = ["scan", "triangles", "fields", "links/bones"]
     head += [f"{lb} time (s)" for lb in labels] + ["Dem Bones time (s)"]
     head += [f"{lb} error (%)" for lb in labels] + ["Dem Bones error (%)"]
-    head += [f"{lb} / Dem Bones" for lb in labels]
+    head += [f"{lb} / Dem Bones error" for lb in labels] + [f"{labels[0]} / Dem Bones time"]
     out = ["### Time and articulation-only reconstruction error", "",
            "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     for row in rows:
@@ -304,6 +308,7 @@ def tables(rows, variants) -> str:
         cells += [f"{db['error']:.2f}" if db else "n/a"]
         cells += [f"{row[lb]['error'] / db['error']:.2f}" if row.get(lb) and db and db["error"] > 0 else "—"
                   for lb in labels]
+        cells += [f"{r0['seconds'] / db['seconds']:.2f}" if r0 and db and db["seconds"] > 0 else "—"]
         out.append("| " + " | ".join(cells) + " |")
     lb0 = labels[0]
     out += ["", "### Structure (scans with a true skeleton)", "",

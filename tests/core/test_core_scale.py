@@ -15,6 +15,22 @@ def test_estimate_switches_to_reduced_above_budget():
     assert cost.full_memory(20000, 1, 0) >= 2 * 8 * 20000 * 19999 / 2
 
 
+def test_reduced_method_is_chosen_for_speed_and_the_estimate_prices_the_fit():
+    # more than 2x the patches it would use: patches (CesiumMan's size), unless the reduced
+    # method is switched off (unbounded budget); a small scan keeps every triangle
+    assert cost.estimate(4672, 20, 2338).reduced
+    assert not cost.estimate(4672, 20, 2338, budget=float("inf")).reduced
+    assert not cost.estimate(1500, 20, 800).reduced
+    assert cost.estimate(1504, 400, 754).reduced  # 400 fields: fewer patches, so earlier
+    # tracked scans pay the articulation stage (more with more links); links auto several fits
+    few, many = cost.estimate(4672, 20, 2338, links=5), cost.estimate(4672, 20, 2338, links=30)
+    assert many.seconds > few.seconds
+    auto = cost.estimate(4672, 20, 2338, links=30, auto=True)
+    assert np.isclose(auto.seconds, cost.AUTO_FITS * many.seconds)
+    greens = cost.estimate(4672, 20, 2338, strategy="paper", links=30)
+    assert greens.seconds < many.seconds
+
+
 def test_reduced_method_agrees_with_full():
     scan, truth = samples.branching(noise=0.02, bulges=True)
     full = F.fit(scan, 11)
