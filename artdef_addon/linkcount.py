@@ -1,4 +1,4 @@
-"""Choosing the number of links from the data (``--links auto``; issue 5).
+"""Choosing the number of links from the data (``--links auto``).
 
 The paper names the link count as its only parameter. Here it is chosen from the articulation
 error curve: for every candidate k the segmentation is re-cut from the cached tree (no new

@@ -20,7 +20,7 @@ import pytest
 
 from artdef_addon import cli, files, fit as F, samples, scan as S
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def digest(path):
