@@ -6,7 +6,7 @@ import pytest
 
 from artdef_addon import fit as F, quality, samples, scan as S
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).parent.parent / "data"
 
 
 def test_karni_gotsman_distortion_on_a_hand_computed_case():
