@@ -173,7 +173,7 @@ def failed():
                 tried += 1
         finally:
             setattr(mod, f, real)
-    ops._SEGMENTERS.clear()  # the failed fits cached their clustering: cluster again
+    pkg("artdef_addon.api").clear_cache()  # the failed fits cached their clustering: cluster again
     hook = lambda stage, fraction: stage == "cluster"
     ops.PROGRESS_HOOKS.append(hook)
     try:
