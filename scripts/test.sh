@@ -13,8 +13,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 start=$(date +%s)
 # The Blender tests that also run on 4.5 LTS (the core tests need no Blender).
-BLENDER_TESTS=(tests/test_extension_install.py tests/test_blender_versions.py
-               tests/test_blender_operators.py tests/test_headless_gltf.py tests/test_handoff.py)
+BLENDER_TESTS=(tests/blender)
 
 bash scripts/env.sh dev
 have45=1
