@@ -1,15 +1,22 @@
-"""The whole fit: segmentation, link motions, joints, tree, skin, springs and residual.
+"""The whole fit: the segmenter, the fit's named stages, the result type and its file.
 
-Stages (paper §5–§7, METHOD §2–§10):
+The :class:`Segmenter` holds what a fit can reuse (per field and triangle the motion ν (Eq. 4)
+and what ε (Eq. 5) needs; per field the average-linkage tree, §5.2). :func:`fit` then runs
+:data:`STAGES` in order on one :class:`FitState` (paper §5–§7, METHOD §2–§10):
 
-1. ``features``  per field and triangle: the motion ν (Eq. 4) and what ε (Eq. 5) needs;
-2. ``cluster``   per field: average linkage over ε, cut to k (§5.2);
-3. ``merge``     split along every seam, merge on Λ with motion centroids (§5.2);
+1. ``segment``    cut to k, split along every seam, merge on Λ with motion centroids (§5.2);
    Green's scans use two levels: per block column, then across all columns (§7.2, A-9);
-4. ``joints``    link motions (robust medoid or least squares, §6), joint centres (§4, §6),
-   the minimum spanning tree over joint cost, ground / world joint;
-5. ``model``     bone frames, pose parameters per field, seam-blended weights, rest-space
-   residual, springs κ (§7).
+2. ``motions``    link motions: robust medoid or least squares (§6);
+3. ``relabel``    tracked scans: faces to the link dominating their skin, link swaps (METHOD §6);
+4. ``skin``       seam-blended weights, or the refined skin decomposition (§7, METHOD §8);
+5. ``joints``     joint centres (§4, §6), the minimum spanning tree over joint cost, ground /
+   world joint;
+6. ``bones``      bone heads, tails and rest frames;
+7. ``pose``       pose parameters per field and the rig's motions (§7);
+8. ``residuals``  rest-space residual, per-link RMS, articulation error (§7, docs/metrics.md).
+
+``FitResult.timings`` holds seconds per stage; the segment stage appears as its parts
+``features``, ``cluster`` (paid once per Segmenter) and ``merge``.
 """
 from __future__ import annotations
 
@@ -420,54 +427,164 @@ def _select(fields: np.ndarray, idx) -> np.ndarray:
 EXACT_JOINT = 1e-6
 
 
-def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion, field_idx, skin="seam"):
-    """Stages 4–5 for the fields ``field_idx`` of ``scan``; returns a FitResult."""
-    x0 = scan.vertices
-    faces = scan.faces
-    fields = _select(scan.fields(), field_idx)
-    P = len(field_idx)
-    labels = seg.full_labels(labels_valid)
-    L = int(labels.max()) + 1
-    timings = {}
-    t0 = time.perf_counter()
-    # link motions
-    def link_motions(labels, medoids):
-        if motion == "lsq":
-            return _joints.lsq_motions(x0, fields, faces, labels, L)
-        R = np.tile(np.eye(3), (P, L, 1, 1))
-        t = np.zeros((P, L, 3))
-        col = {p: i for i, p in enumerate(used_fields)}
-        for i, p in enumerate(field_idx):
-            if p in col:
-                m = medoids[:, col[p]]
-                R[i] = seg.features[p].R[m]
-                t[i] = seg.features[p].t[m]
-        return R, t
+# ---------------------------------------------------------------- the stages
+# The fit after the Segmenter's cached features and trees is a fixed list of named stages
+# (:data:`STAGES`), each a module-level function of one :class:`FitState` that reads the
+# arrays earlier stages left there and adds its own; :func:`run_stages` runs them in order,
+# reports each stage's name to ``progress`` as it starts (cancel: FitCancelled) and times it.
+# A new step slots in as one more (name, function) pair, e.g. after "skin".
 
-    R, t = link_motions(labels, medoids)
-    swaps = 0
-    if _merge.DOMINANT_RELABEL and scan.kind != "greens" and L > 1 and P > 0:
-        # tracked scans: faces to the link that dominates their skin, then the links' motions
-        # again (Green's scans keep the paper's segmentation)
-        new, swaps = _merge.dominant_labels(x0, fields, faces, labels, R, t, units=seg.valid[seg.unit_tri])
-        if np.any(new != labels):
-            labels = new
-            if motion != "lsq":
-                medoids = _merge.link_medoids([seg.features[p] for p in used_fields], seg.weights[used_fields],
-                                              labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
-            R, t = link_motions(labels, medoids)
-    refined = Rs = ts = None
-    if skin == "refined":
-        # the skin decomposition before the joints. Where a short link is blended with
-        # its neighbours on every vertex (a finger's first segment) its robust motion is itself a
-        # blend, and a joint fitted to it lands off the true centre; the decomposition's link
-        # motions are the ones whose blend explains those vertices, so joints are fitted to them
-        # unless the robust motions already share an exact joint (joint_of). The pose parameters
-        # and the reported link motions are the decomposition's (bone offsets absorb what the
-        # joints do not explain), so its weights stay valid.
-        t1 = time.perf_counter()
-        refined, Rs, ts = alternate(x0, fields, faces, labels, R, t)
-        timings["skin"] = time.perf_counter() - t1
+@dataclasses.dataclass
+class FitState:
+    """What the stages hand on (N vertices, T triangles, P fields fitted, L links).
+
+    Inputs: ``scan``, ``seg`` (its Segmenter), ``links`` (k), ``motion``, ``skin``
+    (``"seam"``/``"refined"``), ``field_idx`` (the P scan fields fitted, in order) and
+    ``seg_fields`` (the field subset the segmentation uses; None: all)."""
+    scan: Scan
+    seg: "Segmenter"
+    links: int
+    motion: str
+    skin: str
+    field_idx: list
+    seg_fields: list | None = None
+    fields: np.ndarray | None = None          # (P, N, 3) displacements fitted
+    # segment
+    labels_valid: np.ndarray | None = None    # (T_valid,) link per non-degenerate triangle
+    medoids: np.ndarray | None = None         # (L, P_used) medoid unit per link and used field
+    used_fields: list | None = None           # the fields the segmentation used
+    labels: np.ndarray | None = None          # (T,) link per triangle
+    n_links: int = 0                          # L
+    # motions / relabel
+    R: np.ndarray | None = None               # (P, L, 3, 3) link rotations
+    t: np.ndarray | None = None               # (P, L, 3) link translations
+    swaps: int | None = 0                     # link swaps made (None: over budget, skipped)
+    # skin
+    weights: np.ndarray | None = None         # (N, L) skin weights
+    Rs: np.ndarray | None = None              # (P, L, 3, 3) the refined skin's motions (None: seam)
+    ts: np.ndarray | None = None              # (P, L, 3)
+    # joints and tree
+    centroid: np.ndarray | None = None        # (L, 3) area-weighted link centroids
+    link_vids: list | None = None             # L arrays of vertex ids per link
+    diag: float = 0.0                         # bounding-box diagonal
+    parents: np.ndarray | None = None         # (L,) parent link, -1 root / grounded
+    joints: np.ndarray | None = None          # (L, 3) joint centres (NaN: none)
+    joint_errors: np.ndarray | None = None    # (L,) joint fit RMS
+    grounded: np.ndarray | None = None        # (L,) joined to the fixed world
+    # bones
+    heads: np.ndarray | None = None           # (L, 3)
+    tails: np.ndarray | None = None           # (L, 3)
+    frames: np.ndarray | None = None          # (L, 3, 3) rest frames (columns x, y, z)
+    # pose model
+    params: np.ndarray | None = None          # (P, L, 6) angles, locations
+    Rf: np.ndarray | None = None              # (P, L, 3, 3) the rig's bone motions
+    tf: np.ndarray | None = None              # (P, L, 3)
+    Ro: np.ndarray | None = None              # (P, L, 3, 3) link motions reported
+    to: np.ndarray | None = None              # (P, L, 3)
+    # residuals
+    residual: np.ndarray | None = None        # (P, N, 3) rest-space residual
+    link_residuals: np.ndarray | None = None  # (P, L) rigid-motion RMS of each link's own motion
+    rms_articulation: float = 0.0
+    rms_total: float = 0.0
+    fidelity: object = None                   # quality.fidelity(...) figures
+
+
+def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields, field_idx):
+    """Link motions ``R (P, L, 3, 3)``, ``t (P, L, 3)`` (§6): ``"lsq"``: least squares over each
+    link's triangles; else the robust one, the motion ν of each link's medoid unit (Eq. 4)
+    in every field the segmentation used (identity elsewhere). ``x0 (N, 3)``, ``fields
+    (P, N, 3)``, ``faces (T, 3)``, ``labels (T,)``, ``medoids (L, P_used)``."""
+    if motion == "lsq":
+        return _joints.lsq_motions(x0, fields, faces, labels, L)
+    P = len(field_idx)
+    R = np.tile(np.eye(3), (P, L, 1, 1))
+    t = np.zeros((P, L, 3))
+    col = {p: i for i, p in enumerate(used_fields)}
+    for i, p in enumerate(field_idx):
+        if p in col:
+            m = medoids[:, col[p]]
+            R[i] = seg.features[p].R[m]
+            t[i] = seg.features[p].t[m]
+    return R, t
+
+
+def stage_segment(st: FitState) -> None:
+    """segment (§5, METHOD §2–§5): ``labels (T,)`` and the link medoids for k links from the
+    Segmenter (ν Eq. 4, ε Eq. 5, average linkage cut to k, seam split and Λ merge, §5.2)."""
+    st.fields = _select(st.scan.fields(), st.field_idx)
+    st.labels_valid, st.medoids, st.used_fields = st.seg.segment(st.links, fields=st.seg_fields)
+    st.labels = st.seg.full_labels(st.labels_valid)
+    st.n_links = int(st.labels.max()) + 1
+
+
+def stage_motions(st: FitState) -> None:
+    """link motions (§6): ``R (P, L, 3, 3)``, ``t (P, L, 3)`` by :func:`link_motions`."""
+    st.R, st.t = link_motions(st.scan.vertices, st.fields, st.scan.faces, st.labels, st.n_links, st.motion,
+                              st.seg, st.medoids, st.used_fields, st.field_idx)
+
+
+def stage_relabel(st: FitState) -> None:
+    """relabel (METHOD §6, a deviation for tracked scans): faces to the link that dominates
+    their skin, link swaps, then the links' motions again; ``labels (T,)``, ``R``, ``t``.
+    Green's scans keep the paper's segmentation."""
+    scan, seg, L, P = st.scan, st.seg, st.n_links, len(st.field_idx)
+    st.swaps = 0
+    if not (_merge.DOMINANT_RELABEL and scan.kind != "greens" and L > 1 and P > 0):
+        return
+    new, st.swaps = _merge.dominant_labels(scan.vertices, st.fields, scan.faces, st.labels, st.R, st.t,
+                                           units=seg.valid[seg.unit_tri])
+    if np.any(new != st.labels):
+        st.labels = new
+        if st.motion != "lsq":
+            st.medoids = _merge.link_medoids([seg.features[p] for p in st.used_fields], seg.weights[st.used_fields],
+                                             st.labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
+        stage_motions(st)
+
+
+def stage_skin(st: FitState) -> None:
+    """skin (§7, METHOD §8): ``weights (N, L)``. ``"seam"``: the paper's linear blend across
+    each seam's one-ring. ``"refined"``: the skin decomposition (convex per-vertex weights, at
+    most 4 influences) with its own link motions ``Rs (P, L, 3, 3)``, ``ts (P, L, 3)``.
+
+    Why before the joints: where a short link is blended with its neighbours on every vertex (a
+    finger's first segment) its robust motion is itself a blend and a joint fitted to it lands off
+    the true centre; the decomposition's motions are the ones whose blend explains those
+    vertices, so joints are fitted to them unless the robust motions already share an exact
+    joint (:func:`joint_of`). The pose parameters and the reported link motions are then the
+    decomposition's (bone offsets absorb what the joints do not explain), so its weights stay valid.
+    """
+    x0, faces = st.scan.vertices, st.scan.faces
+    if st.skin == "refined":
+        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t)
+    else:
+        st.Rs = st.ts = None
+        st.weights = blend_weights(x0, faces, st.labels, st.n_links)
+
+
+def joint_of(R, t, Rs, ts, a, b, c_ref, diag):
+    """Joint ``(c (3,), rms, rank)`` of links ``a`` and ``b`` (``b`` None: the fixed world) from
+    the motions ``R (P, L, 3, 3)``, ``t (P, L, 3)`` (§4, §6) when they share an exact joint (to
+    round-off, :data:`EXACT_JOINT`), else from the refined skin's ``Rs``, ``ts`` (if any)."""
+    P = R.shape[0]
+    I3, Z3 = np.tile(np.eye(3), (P, 1, 1)), np.zeros((P, 3))
+    Ra, ta, Rb, tb = R[:, a], t[:, a], *((I3, Z3) if b is None else (R[:, b], t[:, b]))
+    c, rms, rank = _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
+    if Rs is None or rms <= EXACT_JOINT * diag:
+        return c, rms, rank
+    Ra, ta = Rs[:, a], ts[:, a]
+    if b is not None:
+        Rb, tb = Rs[:, b], ts[:, b]
+    return _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
+
+
+def stage_joints(st: FitState) -> None:
+    """joints and tree (§4, §6): a joint per pair of links (seam mean as reference for adjacent
+    ones) and per link with the support, the minimum spanning tree over joint RMS preferring
+    adjacent pairs (rooted at the ground, else the largest link), the root's world joint when
+    it fits. Sets ``parents (L,)``, ``joints (L, 3)``, ``joint_errors (L,)``, ``grounded (L,)``,
+    ``centroid (L, 3)``, ``link_vids``, ``diag``."""
+    x0, faces, labels, L = st.scan.vertices, st.scan.faces, st.labels, st.n_links
+    R, t, Rs, ts = st.R, st.t, st.Rs, st.ts
     # adjacency of links (shared vertices) and seam reference points
     N = x0.shape[0]
     inc = np.zeros((N, L))
@@ -485,35 +602,21 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
         c = x0[faces[m]].mean(axis=1)
         centroid[l] = (w[:, None] * c).sum(0) / w.sum() if w.sum() > 0 else c.mean(0)
     diag = float(np.linalg.norm(np.ptp(x0, axis=0)))
-    support = scan.support_vertices
+    support = st.scan.support_vertices
     G = L  # ground node index
     nodes = L + (1 if support is not None else 0)
-    I3 = np.tile(np.eye(3), (P, 1, 1))
-    Z3 = np.zeros((P, 3))
-    def joint_of(a, b, c_ref):
-        """Joint of links a and b (b = None: the fixed world): from the robust motions when they
-        share an exact joint (to round-off), else from the decomposition's motions."""
-        Ra, ta, Rb, tb = R[:, a], t[:, a], *((I3, Z3) if b is None else (R[:, b], t[:, b]))
-        c, rms, rank = _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
-        if Rs is None or rms <= EXACT_JOINT * diag:
-            return c, rms, rank
-        Ra, ta = Rs[:, a], ts[:, a]
-        if b is not None:
-            Rb, tb = Rs[:, b], ts[:, b]
-        return _joints.fit_joint(Ra, ta, Rb, tb, c_ref)
-
     edges, costs, pref, centres = [], [], [], []
     for a in range(L):
         for b in range(a + 1, L):
             adj = shared[a, b] > 0
             c_ref = seam_sum[a, b] / shared[a, b] if adj else 0.5 * (centroid[a] + centroid[b])
-            c, rms, _ = joint_of(a, b, c_ref)
+            c, rms, _ = joint_of(R, t, Rs, ts, a, b, c_ref, diag)
             edges.append((a, b)); costs.append(rms); pref.append(adj); centres.append(c)
     if support is not None:
         sup_in = inc[support].sum(axis=0) > 0
         for a in range(L):
             sv = support[inc[support, a] > 0] if sup_in[a] else support
-            c, rms, _ = joint_of(a, None, x0[sv].mean(axis=0))
+            c, rms, _ = joint_of(R, t, Rs, ts, a, None, x0[sv].mean(axis=0), diag)
             edges.append((a, G)); costs.append(rms); pref.append(bool(sup_in[a])); centres.append(c)
     edges = np.array(edges, dtype=np.int64).reshape(-1, 2)
     costs = np.array(costs)
@@ -541,61 +644,106 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     if support is None:
         # the root's joint with the fixed world frame, reported when it fits (paper's Joint 1)
         r = root
-        c, rms, rank = joint_of(r, None, centroid[r])
+        c, rms, rank = joint_of(R, t, Rs, ts, r, None, centroid[r], diag)
         tree_err = jerr[np.isfinite(jerr)]
         tol = max(2.0 * (tree_err.max() if tree_err.size else 0.0), 1e-6 * diag)
         if rms <= tol and rank > 0:
             joint[r] = c
             jerr[r] = rms
             grounded[r] = True
-    timings["joints"] = time.perf_counter() - t0 - timings.get("skin", 0.0)
-    t0 = time.perf_counter()
-    heads, tails, frames = _bones(x0, faces, labels, parents, joint, centroid, diag)
-    if refined is None:
-        params = _model.params_from_motions(parents, heads, frames, grounded, R, t)
-        weights = blend_weights(x0, faces, labels, L)
-    else:
-        params = _model.params_from_motions(parents, heads, frames, grounded, Rs, ts)
-        weights = refined
-    Rf, tf = _model.forward_kinematics(parents, heads, frames, params)
-    # the link motions reported: the ones the rig reproduces
-    Ro, to = (R, t) if Rs is None else (Rs, ts)
+    st.centroid, st.link_vids, st.diag = centroid, link_vids, diag
+    st.parents, st.joints, st.joint_errors, st.grounded = parents, joint, jerr, grounded
+
+
+def stage_bones(st: FitState) -> None:
+    """bones (§7): ``heads``, ``tails (L, 3)`` and rest ``frames (L, 3, 3)`` by :func:`_bones`."""
+    st.heads, st.tails, st.frames = _bones(st.scan.vertices, st.scan.faces, st.labels, st.parents, st.joints,
+                                           st.centroid, st.diag)
+
+
+def stage_pose(st: FitState) -> None:
+    """pose model (§7, METHOD §7): pose parameters ``params (P, L, 6)`` from the link motions (the
+    refined skin's when it ran), the rig's motions ``Rf``, ``tf`` by forward kinematics, and the
+    link motions reported ``Ro``, ``to`` (the ones the rig reproduces)."""
+    R, t = (st.R, st.t) if st.Rs is None else (st.Rs, st.ts)
+    st.params = _model.params_from_motions(st.parents, st.heads, st.frames, st.grounded, R, t)
+    st.Rf, st.tf = _model.forward_kinematics(st.parents, st.heads, st.frames, st.params)
+    st.Ro, st.to = R, t
+
+
+def stage_residuals(st: FitState) -> None:
+    """residuals (§7, METHOD §9–§10): rest-space residual ``(P, N, 3)``, each link's own rigid
+    RMS ``(P, L)``, the articulation and total RMS and the Karni–Gotsman figures
+    (docs/metrics.md). One pass per field and link (arrays within)."""
+    x0, fields, weights, L = st.scan.vertices, st.fields, st.weights, st.n_links
+    P, N = len(st.field_idx), x0.shape[0]
     residual = np.zeros((P, N, 3))
     art_err = np.zeros(P)
     tot_err = np.zeros(P)
     link_res = np.zeros((P, L))
     for i in range(P):
         x1 = x0 + fields[i]
-        art = _model.skin(weights, Rf[i], tf[i], x0)
-        residual[i] = _model.rest_space_residual(weights, Rf[i], tf[i], x0, x1)
-        back = _model.skin(weights, Rf[i], tf[i], x0 + residual[i])
+        art = _model.skin(weights, st.Rf[i], st.tf[i], x0)
+        residual[i] = _model.rest_space_residual(weights, st.Rf[i], st.tf[i], x0, x1)
+        back = _model.skin(weights, st.Rf[i], st.tf[i], x0 + residual[i])
         art_err[i] = np.sum((art - x1) ** 2)
         tot_err[i] = np.sum((back - x1) ** 2)
         # rigid-motion residual of each link's own motion over its vertices (fit quality)
         for l in range(L):
-            vid = link_vids[l]
-            d = x0[vid] @ Ro[i, l].T + to[i, l] - x1[vid]
+            vid = st.link_vids[l]
+            d = x0[vid] @ st.Ro[i, l].T + st.to[i, l] - x1[vid]
             link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
-    rms_art = float(np.sqrt(art_err.sum() / (P * N)))
-    rms_tot = float(np.sqrt(tot_err.sum() / (P * N)))
-    fid = _quality.fidelity(x0, fields, float(art_err.sum()))   # Karni–Gotsman, E_RMS (docs/metrics.md)
-    timings["model"] = time.perf_counter() - t0
-    res = FitResult(face_labels=labels, parents=parents, joints=joint, joint_errors=jerr,
-                    heads=heads, tails=tails, frames=frames, grounded=grounded, weights=weights,
-                    rotations=Ro, translations=to, angles=params[..., :3], locations=params[..., 3:],
-                    residual=residual, link_residuals=link_res, rms_articulation=rms_art,
-                    rms_total=rms_tot, articulation_error_percent=fid.kg_percent, motion=motion, timings=timings,
-                    probe_load=scan.probe_load, e_rms=fid.e_rms, vertex_mean_error_percent=fid.vertex_mean_percent)
-    if swaps is None:
+    st.residual, st.link_residuals = residual, link_res
+    st.rms_articulation = float(np.sqrt(art_err.sum() / (P * N)))
+    st.rms_total = float(np.sqrt(tot_err.sum() / (P * N)))
+    st.fidelity = _quality.fidelity(x0, fields, float(art_err.sum()))   # Karni–Gotsman, E_RMS
+
+
+#: the fit's stages in order: (name for progress and ``FitResult.timings``, function of a FitState)
+STAGES = (
+    ("segment", stage_segment),
+    ("motions", stage_motions),
+    ("relabel", stage_relabel),
+    ("skin", stage_skin),
+    ("joints", stage_joints),
+    ("bones", stage_bones),
+    ("pose", stage_pose),
+    ("residuals", stage_residuals),
+)
+
+
+def run_stages(state: FitState, progress=None, stages=STAGES) -> dict:
+    """Run ``stages`` on ``state`` in order; report each stage's name to ``progress`` as it
+    starts (fraction 0; a True answer cancels: :class:`FitCancelled`). Returns the seconds
+    per stage name."""
+    timings = {}
+    for name, stage in stages:
+        _report(progress, name, 0.0)
+        t0 = time.perf_counter()
+        stage(state)
+        timings[name] = time.perf_counter() - t0
+    return timings
+
+
+def _result(st: FitState, timings: dict) -> FitResult:
+    """The FitResult of a state all stages have run on."""
+    scan, fid, N, P = st.scan, st.fidelity, st.scan.n_vertices, len(st.field_idx)
+    res = FitResult(face_labels=st.labels, parents=st.parents, joints=st.joints, joint_errors=st.joint_errors,
+                    heads=st.heads, tails=st.tails, frames=st.frames, grounded=st.grounded, weights=st.weights,
+                    rotations=st.Ro, translations=st.to, angles=st.params[..., :3], locations=st.params[..., 3:],
+                    residual=st.residual, link_residuals=st.link_residuals, rms_articulation=st.rms_articulation,
+                    rms_total=st.rms_total, articulation_error_percent=fid.kg_percent, motion=st.motion,
+                    timings=timings, probe_load=scan.probe_load, e_rms=fid.e_rms,
+                    vertex_mean_error_percent=fid.vertex_mean_percent)
+    if st.swaps is None:
         res.notes.append(f"link swaps skipped: {N:,} vertices × {P} fields is above their budget of "
                          f"{_swaps.SWAP_BUDGET:,} (each trial re-runs the skin decomposition)")
-    if swaps:
-        res.notes.append(f"{swaps} link swap(s): links that explained little were re-seeded where the skin fitted "
-                         f"worst (tracked scans)")
+    if st.swaps:
+        res.notes.append(f"{st.swaps} link swap(s): links that explained little were re-seeded where the skin "
+                         f"fitted worst (tracked scans)")
     if scan.kind == "greens":
-        res.kappa = np.transpose(params, (1, 2, 0)) / scan.probe_load
-        res.residual = residual
-        loads = np.asarray(field_idx) // 3
+        res.kappa = np.transpose(st.params, (1, 2, 0)) / scan.probe_load
+        loads = np.asarray(st.field_idx) // 3
         res.load_vertices = scan.load_vertices[np.unique(loads)]
     return res
 
@@ -638,7 +786,9 @@ def _bones(x0, faces, labels, parents, joint, centroid, diag):
 def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_max=None,
         progress=None, segmenter: Segmenter | None = None, strategy: str = "auto",
         skin: str = "auto") -> FitResult:
-    """Fit an articulated deformable model to ``scan`` with ``links`` links (paper §5–§7).
+    """Fit an articulated deformable model to ``scan`` with ``links`` links (paper §5–§7): the
+    :data:`STAGES` in order (``result.timings``: seconds per stage, the segment stage as its
+    parts features, cluster and merge).
 
     ``strategy`` chooses how fields are combined (see :class:`Segmenter`); it is ignored when a
     ready ``segmenter`` is passed. ``skin`` is ``"seam"`` (the paper's linear blend across each
@@ -661,9 +811,10 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     seg._check_k(links)
     if skin == "auto":
         skin = "seam" if scan.kind == "greens" else "refined"
-    labels, medoids, used = seg.segment(links)
-    _report(progress, "joints", 0.0)
-    result = _articulate(scan, seg, labels, medoids, used, motion, list(range(scan.n_fields)), skin)
+    state = FitState(scan=scan, seg=seg, links=links, motion=motion, skin=skin,
+                     field_idx=list(range(scan.n_fields)))
+    stage_times = run_stages(state, progress)
+    result = _result(state, stage_times)
     result.skin = skin
     result.mode = mode
     result.p_max = p_max
@@ -672,15 +823,16 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
         result.pseudo = []
         for k, g in enumerate(seg.groups):
             _report(progress, "pseudo", k / len(seg.groups))
-            lab, med, used_k = seg.segment(links, fields=g)
-            sub = _articulate(scan, seg, lab, med, used_k, motion, g, skin)
+            sub_state = FitState(scan=scan, seg=seg, links=links, motion=motion, skin=skin,
+                                 field_idx=list(g), seg_fields=g)
+            sub = _result(sub_state, run_stages(sub_state))   # one "pseudo" report per load point
             sub.mode = "pseudo"
             sub.p_max = p_max
             result.pseudo.append(sub)
     # features and trees are paid once per Segmenter (cached); merge is this fit's own share
     timings = {"features": seg.timings.get("features", 0.0), "cluster": seg.timings.get("cluster", 0.0),
                "merge": seg.timings.get("merge", 0.0) - merge_before}
-    timings.update(result.timings)
+    timings.update((k, v) for k, v in stage_times.items() if k != "segment")
     timings["total"] = time.perf_counter() - t_start
     result.timings = timings
     result.notes = list(seg.notes) + result.notes

@@ -228,7 +228,7 @@ def bench_fit(sizes, fields, a):
 
 
 def fit_table(rows) -> str:
-    names = ["features", "cluster", "merge", "joints", "model"]
+    names = ["features", "cluster", "merge"] + [n for n, _ in F.STAGES if n != "segment"]
     extra = sorted({k for r in rows for k in r["timings"]} - set(names) - {"total"})
     cols = names + extra
     db = any("db_s" in r for r in rows)

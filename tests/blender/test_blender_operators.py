@@ -1543,7 +1543,9 @@ def test_fit_progress_reads_as_words(pkg):
     for stage in ("features", "distances", "cluster", "merge", "links", "pseudo"):
         assert text(stage, 0.25).endswith(" 25%") and text(stage, 0.25) != f"{stage} 25%"
     assert text("merge column 3", 0.5) == "merging pieces into links (load point 3) 50%"
-    assert text("joints", 0.0) == "joints, bones and skin weights"   # reported once: no 0%
+    for stage in ("segment", "motions", "relabel", "skin", "joints", "bones", "pose", "residuals"):
+        assert text(stage, 0.0) != stage and not text(stage, 0.0).endswith("%")   # reported once: no 0%
+    assert text("joints", 0.0) == "joints and tree"
     assert text("done", 1.0) == "finishing" and text("start", 0.0) == "starting"
     job = pkg.ops._FitJob(None, "auto")
     job.progress("links", 0.5)
