@@ -188,9 +188,9 @@ _STAGES = {
     "relabel": ("relabelling faces by their skin", False),
     "skin": ("skin weights", False),
     "joints": ("joints and tree", False),
-    "bones": ("bones", False),
+    "bones": ("bone frames", False),
     "pose": ("pose parameters", False),
-    "residuals": ("residuals", False),
+    "residuals": ("residual and errors", False),
     "pseudo": ("one model per load point", True),
     "done": ("finishing", False),
 }
