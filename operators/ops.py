@@ -64,22 +64,26 @@ def strategy_for(kind):
     return "paper" if kind == "greens" else "summed"
 
 
-def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0):
+def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0, links=None,
+                auto=False):
     """What a fit with these settings will do, from counts only (no fit).
 
     Returns ``(estimate, reduce_arg)``: the core's :class:`cost.Estimate` for the
     method that will run (``estimate.reduced``) and the ``reduce`` argument for the
-    Segmenter (None: the core decides by the budget, and notes why).
+    Segmenter (None: the core decides by the budget, and notes why). ``links``: the link
+    count the fit will use (its skin decompositions grow with it; None: the core's default),
+    ``auto``: Auto Links (the link-count search, priced as the core prices it).
     """
     budget = float(budget_gb) * GB
     strategy = strategy_for(kind)
+    kw = dict(links=None if auto or links is None else int(links), auto=bool(auto))
     if reduce == 'OFF':
-        return _cost.estimate(triangles, fields, vertices, strategy, float("inf")), False
+        return _cost.estimate(triangles, fields, vertices, strategy, float("inf"), **kw), False
     if reduce == 'ON':
         # the estimate of the reduced branch, with the patch count this budget gives
         units = min(triangles, _cost.reduced_units(budget, fields))
-        return _cost.estimate(triangles, fields, vertices, strategy, 0.0, units=units), True
-    return _cost.estimate(triangles, fields, vertices, strategy, budget), None
+        return _cost.estimate(triangles, fields, vertices, strategy, 0.0, units=units, **kw), True
+    return _cost.estimate(triangles, fields, vertices, strategy, budget, **kw), None
 
 
 def segmenter_key(fingerprint, reduced, reduce='AUTO', budget_gb=2.0):
