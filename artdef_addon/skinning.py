@@ -165,7 +165,9 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
             sub = np.zeros((over.size, m), dtype=bool)
             np.put_along_axis(sub, keep, True, axis=1)
             sub &= vm[over]
-            ws, _ = _active_set(Qo, qo, sub, max_rounds=3 * top)
+            # warm start from the convex optimum's weights on the kept links (feasible there, and
+            # usually the limited optimum's support already): fewer active-set steps, same optimum
+            ws, _ = _active_set(Qo, qo, sub, max_rounds=3 * top, w0=np.where(sub, w[over], 0.0))
             ws = np.maximum(ws, 0.0)
             ws /= ws.sum(axis=1, keepdims=True)
             obj = np.einsum("na,nab,nb->n", ws, Qo, ws) - 2 * np.einsum("na,na->n", qo, ws)
