@@ -12,10 +12,31 @@ import time
 
 import numpy as np
 
+from .options import FitOptions, OptionsError
+
+
+def _option_arguments(parser) -> None:
+    """One ``--name`` per :class:`FitOptions` field, from its declaration (type, default, choices,
+    unit and description are not repeated here)."""
+    for name, (default, opt) in FitOptions.declaration().items():
+        flag = "--" + name.replace("_", "-")
+        helptext = opt.description + (f" [{opt.unit}]" if opt.unit else "")
+        if opt.choices:
+            helptext += " (" + "; ".join(f"{c.value}: {c.description}" for c in opt.choices) + ")"
+        if opt.greens_only:
+            helptext += " [Green's scans]"
+        helptext = helptext.replace("%", "%%")
+        if opt.choices:
+            parser.add_argument(flag, choices=opt.values, default=default, help=helptext,
+                                metavar="{" + ",".join(opt.values) + "}")
+        else:       # None: not given, the declared default applies (max_links: see _cmd_fit)
+            helptext += f" (default: {'off' if default is None else default})"
+            parser.add_argument(flag, type=opt.type, default=None, help=helptext)
+
 
 #: --links auto tries up to this many links unless --max-links says otherwise (then clamped to the
 #: scan's triangles; an explicit --max-links above them is refused)
-DEFAULT_MAX_LINKS = 30
+DEFAULT_MAX_LINKS = FitOptions().max_links   # --links auto: clamped to the scan's triangles
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -24,7 +45,7 @@ def _parser() -> argparse.ArgumentParser:
                                             "(Lang, Pai & Seidel, GI 2003).")
     sub = p.add_subparsers(dest="command", required=True)
     f = sub.add_parser("fit", help="segment a scan into links, fit joints, tree and model")
-    f.add_argument("scan", help="scan .npz (format v1, see README), or an animated file Blender "
+    f.add_argument("scan", help="scan .npz (format v1, see docs/formats.md), or an animated file Blender "
                                 "imports (.glb/.gltf/.fbx/.abc/.usd/.usdc/.usda/.usdz) or an "
                                 "OBJ/PLY sequence (folder, pattern or first file): sampled in "
                                 "Blender over the file's own frames (needs bpy)")
@@ -35,24 +56,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="animated file or sequence: frames to sample (default: the file's keys)")
     f.add_argument("--links", required=True,
                    help="number of links, or 'auto' to choose it from the data")
-    f.add_argument("--mode", choices=("global", "pseudo"), default="global",
-                   help="one articulation for all fields, or one per Green's block column")
-    f.add_argument("--motion", choices=("robust", "lsq"), default="robust",
-                   help="link motion: motion centroid (paper) or least squares (comparison)")
-    f.add_argument("--p-max", type=float, default=None,
-                   help="strain hardening limit (> 1, in probe loads); off by default")
-    f.add_argument("--max-links", type=int, default=None,
-                   help=f"upper bound for --links auto (default {DEFAULT_MAX_LINKS}, at most the triangles)")
-    f.add_argument("--memory-budget", type=float, default=2.0,
-                   help="GB; above it the fit switches to the reduced method on patches")
-    f.add_argument("--reduce", choices=("auto", "on", "off"), default="auto",
-                   help="reduced method on patches: automatic by memory budget, always, never")
-    f.add_argument("--strategy", choices=("auto", "summed", "paper"), default="auto",
-                   help="how fields are combined: the paper's per-field trees with split-and-merge, "
-                        "or one tree over the summed distances (auto: paper for Green's scans)")
-    f.add_argument("--skin", choices=("auto", "seam", "refined"), default="auto",
-                   help="skin weights: seam blend (paper) or refined by least squares "
-                        "(auto: refined for tracked scans)")
+    _option_arguments(f)
     f.add_argument("-o", "--output", help="result .npz")
     f.add_argument("--blend", help="also build the rig in Blender and save this .blend (needs bpy)")
     f.add_argument("--glb", help="also export the rig as glTF binary (needs bpy): the fitted mesh "
@@ -64,7 +68,7 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--png", help="also render a preview PNG (needs bpy)")
     f.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     s = sub.add_parser("sample", help="write a built-in sample scan")
-    s.add_argument("name", help="rod | branching | greens_rod")
+    s.add_argument("name", help="rod | branching | greens_rod | elastic")
     s.add_argument("-o", "--output", required=True)
     s.add_argument("--fields", type=int, help="number of fields (tracked samples)")
     s.add_argument("--noise", type=float, default=0.0, help="branching: noise relative to field RMS")
@@ -141,7 +145,8 @@ def _cmd_info(a) -> int:
     from . import files
     d = files.read_npz(a.path)          # BadFile: one line naming the file
     if "face_labels" in d:
-        res = files.read_result(a.path)
+        from .fit import FitResult
+        res = FitResult.load(a.path)
         print(f"{a.path}: fit result")
         print(res.summary())
         return 0
@@ -156,9 +161,77 @@ def _cmd_info(a) -> int:
     return 0
 
 
+#: Animated files Blender imports (fitted through ``artdef.fields_from_file``).
+ANIMATED_EXTENSIONS = (".glb", ".gltf", ".fbx", ".abc", ".usd", ".usdc", ".usda", ".usdz")
+SEQUENCE_EXTENSIONS = (".obj", ".ply")
+
+
+def input_kind(path: str) -> str | None:
+    """'npz' (a scan), 'animated' (a file Blender imports), 'sequence' (an OBJ/PLY
+    sequence: a folder, a pattern or one numbered file), or None."""
+    if os.path.isdir(path) or any(c in os.path.basename(path) for c in "*?["):
+        return "sequence"
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".npz":
+        return "npz"
+    if ext in ANIMATED_EXTENSIONS:
+        return "animated"
+    if ext in SEQUENCE_EXTENSIONS:
+        return "sequence"
+    return None
+
+
+def parse_frames(text: str | None):
+    """``START:END[:STEP]`` -> (start, end, step); None for None.  ValueError
+    with one line saying what is wrong."""
+    if text is None:
+        return None
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        start, end = int(parts[0]), int(parts[1])
+        step = int(parts[2]) if len(parts) == 3 else 1
+    except ValueError:
+        raise ValueError(f"--frames must be START:END or START:END:STEP (whole numbers), "
+                         f"got {text!r}") from None
+    if end < start or step < 1:
+        raise ValueError(f"--frames {text}: END must not be before START and STEP must be >= 1")
+    return start, end, step
+
+
+def blender_layer():
+    """The Blender layer's headless module (``operators/headless.py``), for --blend/--glb/--png.
+
+    The core never imports bpy (not even lazily): the Blender layer does. This command line only
+    loads that module, by its place in the extension, when Blender is asked for (outputs, or an
+    input only Blender reads) — as
+    ``<extension>.operators.headless`` when the core runs inside the installed extension package,
+    else from the file next to this package (a checkout run with ``python -m artdef_addon``).
+    That module checks bpy, registers the extension and builds the rig from the result this
+    command already fitted (one fit per command).
+    """
+    import importlib
+    import importlib.util
+    parent = __package__.rpartition(".")[0]
+    if parent:
+        return importlib.import_module(parent + ".operators.headless")
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "operators", "headless.py")
+    name = "artdef_headless_entry"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or not os.path.isfile(path):
+        raise _BadInput(f"--blend/--glb/--png need the Blender layer ({path} is missing)")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 def _cmd_fit(a) -> int:
-    from . import files, fit as F
-    from . import headless
+    from . import api, files
+    from . import fit as fit_module
     R = files.RANGES
     t0 = time.perf_counter()
     blender = bool(a.blend or a.glb or a.fbx or a.png)
@@ -167,20 +240,20 @@ def _cmd_fit(a) -> int:
                                             "--fbx": a.fbx, "--png": a.png})
     if a.rotation_only and not (a.blend or a.glb or a.fbx):
         raise _BadInput("--rotation-only applies to the rig: add --blend, --glb or --fbx")
-    kind = headless.input_kind(a.scan)
+    kind = input_kind(a.scan)
     if kind is None:
         raise _BadInput(f"{a.scan}: not a scan (.npz), an animated file "
-                        f"({'/'.join(headless.ANIMATED_EXTENSIONS)}) or an OBJ/PLY sequence")
+                        f"({'/'.join(ANIMATED_EXTENSIONS)}) or an OBJ/PLY sequence")
     try:
-        frames = headless.parse_frames(a.frames)
+        frames = parse_frames(a.frames)
     except ValueError as exc:
         raise _BadInput(str(exc)) from None
     if a.clip and kind == "npz":
         raise _BadInput("--clip applies to animated files and sequences, not to a .npz scan")
     for clip in a.clip:
-        if headless.input_kind(clip) not in ("animated", "sequence"):
+        if input_kind(clip) not in ("animated", "sequence"):
             raise _BadInput(f"--clip {clip}: not an animated file or an OBJ/PLY sequence")
-        if headless.input_kind(clip) == "animated" and not os.path.exists(clip):
+        if input_kind(clip) == "animated" and not os.path.exists(clip):
             raise _BadInput(f"--clip {clip}: no such file")
     if frames is not None and kind == "npz":
         raise _BadInput("--frames applies to animated files and sequences, not to a .npz scan")
@@ -192,11 +265,16 @@ def _cmd_fit(a) -> int:
     max_links = None if a.max_links is None else _check(R["max_links"], "--max-links", a.max_links)
     if a.p_max is not None:
         _check(R["p_max"], "--p-max", a.p_max)
-    _check(R["memory_budget"], "--memory-budget", a.memory_budget)
-    if blender and a.strategy != "auto":
-        raise _BadInput("--strategy cannot be combined with --blend/--glb/--fbx/--png: the Blender fit uses "
-                        "strategy auto")
+    if a.memory_budget is not None:
+        _check(R["memory_budget"], "--memory-budget", a.memory_budget)
+    given = {name: getattr(a, name) for name in FitOptions.declaration() if getattr(a, name) is not None}
+    try:
+        options = FitOptions(**given)          # the one check of the settings
+    except OptionsError as exc:
+        raise _BadInput(str(exc)) from None
+    headless = None
     if blender or kind != "npz":
+        headless = blender_layer()
         try:
             headless.require_bpy()
         except RuntimeError as exc:
@@ -216,38 +294,24 @@ def _cmd_fit(a) -> int:
     usable = sc.n_faces - len(sc.degenerate_faces)
     why = f" (the scan's {usable} non-degenerate triangles)"
     if auto and max_links is None:
-        max_links = min(DEFAULT_MAX_LINKS, usable)
+        max_links = min(FitOptions().max_links, usable)
     elif auto:
         max_links = _check(R["max_links"].within(usable, why), "--max-links", max_links)
     else:
         links = _check(R["links"].within(usable, why), "--links", links)
+    if auto:
+        options = options.replace(max_links=max_links)
     t_fit = time.perf_counter()
-    reduce = {"auto": None, "on": True, "off": False}[a.reduce]
-    seg = F.Segmenter(sc, strategy=a.strategy, reduce=reduce, budget=a.memory_budget * 2 ** 30)
-    if not a.quiet:
-        from .cost import estimate
-        # the segmenter's estimate, priced for this link count (or the --links auto search)
-        budget = {None: a.memory_budget * 2 ** 30, True: 0.0, False: float("inf")}[reduce]
-        est = estimate(len(seg.valid), sc.n_fields, sc.n_vertices, seg.strategy, budget,
-                       units=len(seg.unit_tri) if seg.reduced else None,
-                       links=None if auto else links, auto=auto)
-        print(est.describe() + (" -> reduced method" if seg.reduced else ""), flush=True)
-    t_auto = 0.0
-    if auto:
-        from .linkcount import choose_links
-        t0 = time.perf_counter()
-        choice = choose_links(seg, max_links=max_links)
-        links = choice.links
-        t_auto = time.perf_counter() - t0
-    result = choice.reusable(a.mode, a.motion, a.skin) if auto else None
-    if result is not None:      # the chooser fitted this count already
-        result.p_max = a.p_max
-    else:
-        result = F.fit(sc, links, mode=a.mode, motion=a.motion, p_max=a.p_max, segmenter=seg,
-                       strategy=a.strategy, skin=a.skin)
+    try:
+        if not a.quiet:
+            # priced for this link count (or the --links auto search)
+            est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
+                              links=None if auto else links, auto=auto)
+            print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
+        result = api.fit(sc, "auto" if auto else links, options)
+    except OptionsError as exc:
+        raise _BadInput(str(exc)) from None
     timings = {"load": t_load, **result.timings}
-    if auto:
-        timings["links auto"] = t_auto
     timings["total"] = time.perf_counter() - t_fit
     result.timings = timings
     # all outputs are written to temporaries and renamed into place together at the end: a failure
@@ -255,25 +319,24 @@ def _cmd_fit(a) -> int:
     rot_err = None
     with files.Outputs() as out:
         if a.output:
-            out.write_npz(a.output, F.result_arrays(result), compress=True)
+            out.write_npz(a.output, fit_module.result_arrays(result), compress=True)
         if blender:
+            # temporaries first (registered for clean-up), then the Blender stage: the rig is built
+            # from this result, one fit per command
+            tmp = {k: v and out.path(v) for k, v in (("blend", a.blend), ("glb", a.glb), ("png", a.png),
+                                                     ("fbx", a.fbx))}
             if not a.quiet:
                 print("building the Blender outputs", flush=True)
-            kwargs = dict(links=int(links), mode=a.mode.upper(), motion=a.motion.upper(),
-                          p_max=float(a.p_max or 0.0), skin=a.skin.upper(), reduce=a.reduce.upper(),
-                          memory_budget=float(a.memory_budget))
-            made = headless.build_outputs(a.scan, kwargs, a.blend and out.path(a.blend),
-                                          a.glb and out.path(a.glb), a.png and out.path(a.png),
-                                          fbx=a.fbx and out.path(a.fbx), mesh=prepared,
-                                          rotation_only=a.rotation_only)
+            made = headless.build_outputs(a.scan, sc, result, tmp["blend"], tmp["glb"], tmp["png"],
+                                          fbx=tmp["fbx"], mesh=prepared, rotation_only=a.rotation_only)
             rot_err = made.pop("rotation_only_error", None) if made else None
         written = out.commit()
     _committed.extend(written)
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
-        if auto:
-            print(choice.reason)
+        if result.link_reason:
+            print(result.link_reason)
         print(result.summary())
         if sc.kind == "greens":
             f = sc.fields()

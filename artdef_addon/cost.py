@@ -1,4 +1,4 @@
-"""Know the cost before paying it: time and memory estimates of a fit (issue 6).
+"""Know the cost before paying it: time and memory estimates of a fit.
 
 The constants were measured on the project's 2-core reference machine (see
 ``benchmarks/bench_core.py``); they are rough by design — the point is to know whether a fit

@@ -306,10 +306,10 @@ def _check_result_arrays(name, d, prefix=""):
         raise BadFile(f"{name}: '{prefix}face_labels' or '{prefix}parents' refer to links that do not exist")
 
 
-def read_result(path):
+def read_result_arrays(path) -> dict:
     """Read a result file written by ``fit.save_result`` and check its keys, dtypes and shapes
-    → ``FitResult``. Any problem is one :class:`BadFile` line naming the file."""
-    from . import fit as F
+    → its arrays (``fit.load_result`` makes the ``FitResult``; this module does not import the
+    fit). Any problem is one :class:`BadFile` line naming the file."""
     name = _name(path)
     d = read_npz(path)
     if "face_labels" not in d and "vertices" in d:
@@ -329,10 +329,7 @@ def read_result(path):
     while f"pseudo{k}_face_labels" in d:
         _check_result_arrays(name, d, f"pseudo{k}_")
         k += 1
-    try:
-        return F._result_from_arrays(d)
-    except (KeyError, ValueError, TypeError, IndexError) as exc:
-        raise BadFile(f"{name}: damaged result ({_line(exc)})") from None
+    return d
 
 
 # ---------------------------------------------------------------- writing

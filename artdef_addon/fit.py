@@ -14,6 +14,7 @@ Stages (paper §5–§7, METHOD §2–§10):
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 
 import numpy as np
@@ -24,15 +25,14 @@ from . import joints as _joints
 from . import merge as _merge
 from . import model as _model
 from . import patches as _patches
+from . import quality as _quality
 from . import swaps as _swaps
-from .metric import _workers, field_features, rest_geometry
+from .metric import worker_count, field_features, rest_geometry
+from .options import FitOptions
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights
 
-MODES = ("global", "pseudo")
-MOTIONS = ("robust", "lsq")
 STRATEGIES = ("summed", "paper")  # "auto": paper for Green's scans, summed for tracked ones
-SKINS = ("seam", "refined")        # "auto": refined for tracked scans, seam for Green's scans
 
 
 class FitCancelled(Exception):
@@ -69,6 +69,20 @@ class FitResult:
     timings: dict = dataclasses.field(default_factory=dict)
     pseudo: list | None = None
     notes: list = dataclasses.field(default_factory=list)
+    link_reason: str = ""            # why ``links="auto"`` chose this count (empty: count given)
+    link_errors: list = dataclasses.field(default_factory=list)  # links auto: e(k) %, k = 1, 2, …
+    options: object = None           # the FitOptions it was asked with ("auto" kept), when known
+    reduced: bool = False            # the reduced method on patches ran
+    estimate: object = None          # the cost.Estimate of the method that ran
+    groups: list | None = None       # fields of each load point (Green's scans: pseudo models)
+    # issue 19 (docs/metrics.md): E_RMS in scene units, the pre-issue-19 per-vertex-mean figure, and the
+    # verdict's comparison (one rigid motion per frame, a linear model of about the rig's size); NaN: unknown
+    e_rms: float = float("nan")
+    vertex_mean_error_percent: float = float("nan")
+    rigid_error_percent: float = float("nan")
+    linear_error_percent: float = float("nan")
+    linear_rank: int = 0
+    articulated: bool = True
 
     @property
     def n_links(self) -> int:
@@ -79,13 +93,23 @@ class FitResult:
         """Pose parameters per field, (P, L, 6): Euler XYZ then location."""
         return np.concatenate([self.angles, self.locations], axis=-1)
 
+    def save(self, path) -> None:
+        """Write this result as a ``.npz`` (see docs/formats.md)."""
+        save_result(path, self)
+
+    @classmethod
+    def load(cls, path) -> "FitResult":
+        """Read a result written by :meth:`save`."""
+        return load_result(path)
+
     def error_percent_text(self) -> str:
-        """The Karni–Gotsman articulation error as text: "1.23%", or "n/a (one field)" where it is
-        undefined (it divides by the fields' spread about their mean, zero for a single field)."""
+        """The Karni–Gotsman distortion as text: "0.0274% Karni–Gotsman", or "n/a" where it is undefined
+        (every frame's vertices at one point: nothing spreads about the frames' centroids). Defined for a
+        single field too (docs/metrics.md); the old per-vertex-mean figure was not."""
         e = self.articulation_error_percent
         if np.isfinite(e):
-            return f"{e:.2f}%"
-        return "n/a (one field)" if self.rotations.shape[0] == 1 else "n/a (the fields do not differ)"
+            return f"{e:.3g}% Karni–Gotsman"
+        return "n/a (the frames do not spread about their centroids)"
 
     def summary(self) -> str:
         lines = [f"links: {self.n_links}  mode: {self.mode}  motion: {self.motion}  skin: {self.skin}"]
@@ -97,7 +121,12 @@ class FitResult:
             lines.append(f"  link {l:2d}: {np.count_nonzero(self.face_labels == l):6d} triangles, "
                          f"parent {par:>8s}, {where}, joint error {self.joint_errors[l]:.3g}")
         lines.append(f"rms error: articulation {self.rms_articulation:.4g} "
-                     f"({self.error_percent_text()}), articulation + residual {self.rms_total:.3g}")
+                     f"({self.error_percent_text()}, E_RMS {self.e_rms:.3g}), "
+                     f"articulation + residual {self.rms_total:.3g}")
+        if np.isfinite(self.rigid_error_percent):
+            lines.append(f"reference models (Karni–Gotsman): one rigid motion per frame {self.rigid_error_percent:.3g}%, "
+                         f"rank-{self.linear_rank} linear model {self.linear_error_percent:.3g}%"
+                         + ("" if self.articulated else "; the data do not look articulated (see note)"))
         lines.append("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in self.timings.items()))
         lines.extend(f"note: {n}" for n in self.notes)
         return "\n".join(lines)
@@ -122,7 +151,7 @@ class Segmenter:
     * ``"summed"`` — one average-linkage tree over Σ_p w_p ε_p, the fields' distances
       on the unit scale of §5.3 summed, cut to k, split into connected pieces and merged on Λ as
       above. One linkage instead of P, streamed over fields (memory: one condensed matrix), and
-      measurably better on smoothly skinned characters (README, "deviations").
+      measurably better on smoothly skinned characters (docs/method.md, "Deviations from the paper").
 
     ``"auto"`` (default) uses the paper's two levels for Green's scans — there a field that only
     dents the surface near its load would dominate a plain sum — and the sum for tracked scans.
@@ -204,7 +233,7 @@ class Segmenter:
             # two fields at a time on two threads (numpy's element-wise work releases the GIL);
             # cancelling is checked here, on the calling thread
             from concurrent.futures import ThreadPoolExecutor
-            with ThreadPoolExecutor(min(2, _workers())) as ex:
+            with ThreadPoolExecutor(min(2, worker_count())) as ex:
                 pending = []
                 for p in range(P):
                     pending.append(ex.submit(neighbours, p))
@@ -269,7 +298,7 @@ class Segmenter:
         try:
             return _merge.merge_clusters(feats, w, init, k, progress=cb, unit_size=self.unit_size,
                                          cache=self._cache(), tag=_merge.member_key(np.asarray(fields)))
-        except _merge._Cancel:
+        except _merge.MergeCancelled:
             raise FitCancelled(f"cancelled during {stage}") from None
 
     def _cache(self):
@@ -385,34 +414,6 @@ def _select(fields: np.ndarray, idx) -> np.ndarray:
     return fields[idx]
 
 
-def _lsq_motions(x0, fields, faces, labels, L, corner_weights: bool = False):
-    """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, METHOD §6).
-
-    Each link vertex counts once, or with ``corner_weights`` once per face corner it is.
-    """
-    P = fields.shape[0]
-    R = np.zeros((P, L, 3, 3))
-    t = np.zeros((P, L, 3))
-    for l in range(L):
-        vid, count = np.unique(faces[labels == l], return_counts=True)
-        w = count / count.sum() if corner_weights else np.full(len(vid), 1.0 / len(vid))
-        a = x0[vid]
-        b = a[None] + fields[:, vid]
-        am = w @ a
-        bm = np.einsum("n,pnj->pj", w, b)
-        H = np.einsum("n,ni,pnj->pij", w, a - am, b - bm[:, None])
-        U, _, Vt = np.linalg.svd(H)
-        d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
-        D = np.zeros((P, 3, 3))
-        D[:, 0, 0] = 1
-        D[:, 1, 1] = 1
-        D[:, 2, 2] = d
-        Rl = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
-        R[:, l] = Rl
-        t[:, l] = bm - np.einsum("pij,j->pi", Rl, am)
-    return R, t
-
-
 #: a joint whose robust motions agree to this fraction of the bounding-box diagonal is exact
 #: (round-off, also of single-precision input: Blender meshes hold float32, about 1e-7 of the
 #: extent): the refined skin keeps it instead of refitting it to the decomposition's motions
@@ -432,7 +433,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
     # link motions
     def link_motions(labels, medoids):
         if motion == "lsq":
-            return _lsq_motions(x0, fields, faces, labels, L)
+            return _joints.lsq_motions(x0, fields, faces, labels, L)
         R = np.tile(np.eye(3), (P, L, 1, 1))
         t = np.zeros((P, L, 3))
         col = {p: i for i, p in enumerate(used_fields)}
@@ -457,7 +458,7 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
             R, t = link_motions(labels, medoids)
     refined = Rs = ts = None
     if skin == "refined":
-        # the skin decomposition before the joints (issue 5). Where a short link is blended with
+        # the skin decomposition before the joints. Where a short link is blended with
         # its neighbours on every vertex (a finger's first segment) its robust motion is itself a
         # blend, and a joint fitted to it lands off the true centre; the decomposition's link
         # motions are the ones whose blend explains those vertices, so joints are fitted to them
@@ -577,18 +578,14 @@ def _articulate(scan, seg: Segmenter, labels_valid, medoids, used_fields, motion
             link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
     rms_art = float(np.sqrt(art_err.sum() / (P * N)))
     rms_tot = float(np.sqrt(tot_err.sum() / (P * N)))
-    # ‖X − X̄‖ over fields, streamed: X − X̄ = u_p − ū
-    mean_u = fields.mean(axis=0)
-    spread = np.sqrt(sum(float(np.sum((fields[i] - mean_u) ** 2)) for i in range(P)))
-    # undefined (NaN, shown as "n/a") where the fields do not spread: one field, or identical ones
-    kg = float(100.0 * np.sqrt(art_err.sum()) / spread) if spread > 0 else float("nan")
+    fid = _quality.fidelity(x0, fields, float(art_err.sum()))   # Karni–Gotsman, E_RMS (docs/metrics.md)
     timings["model"] = time.perf_counter() - t0
     res = FitResult(face_labels=labels, parents=parents, joints=joint, joint_errors=jerr,
                     heads=heads, tails=tails, frames=frames, grounded=grounded, weights=weights,
                     rotations=Ro, translations=to, angles=params[..., :3], locations=params[..., 3:],
                     residual=residual, link_residuals=link_res, rms_articulation=rms_art,
-                    rms_total=rms_tot, articulation_error_percent=kg, motion=motion, timings=timings,
-                    probe_load=scan.probe_load)
+                    rms_total=rms_tot, articulation_error_percent=fid.kg_percent, motion=motion, timings=timings,
+                    probe_load=scan.probe_load, e_rms=fid.e_rms, vertex_mean_error_percent=fid.vertex_mean_percent)
     if swaps is None:
         res.notes.append(f"link swaps skipped: {N:,} vertices × {P} fields is above their budget of "
                          f"{_swaps.SWAP_BUDGET:,} (each trial re-runs the skin decomposition)")
@@ -649,14 +646,7 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     least squares over all fields to the rig's link motions); ``"auto"`` refines for tracked
     scans and keeps seam weights for Green's scans.
     """
-    if mode not in MODES:
-        raise ScanError(f"mode must be one of {MODES}, got {mode!r}")
-    if motion not in MOTIONS:
-        raise ScanError(f"motion must be one of {MOTIONS}, got {motion!r}")
-    if p_max is not None and not (np.isfinite(p_max) and p_max > 1):
-        raise ScanError(f"p_max must be a number greater than 1 (or off), got {p_max}")
-    if skin not in SKINS + ("auto",):
-        raise ScanError(f"skin must be one of {SKINS + ('auto',)}, got {skin!r}")
+    FitOptions(mode=mode, motion=motion, p_max=p_max, skin=skin)   # the one check of the settings
     if mode == "pseudo" and scan.greens is None:
         raise ScanError("pseudo-articulation needs a Green's-matrix scan (one model per load column)")
     try:
@@ -677,6 +667,7 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     result.skin = skin
     result.mode = mode
     result.p_max = p_max
+    _quality.judge(result, scan.vertices, scan.fields())
     if mode == "pseudo":
         result.pseudo = []
         for k, g in enumerate(seg.groups):
@@ -702,8 +693,12 @@ _ARRAYS = ("face_labels", "parents", "joints", "joint_errors", "heads", "tails",
            "weights", "rotations", "translations", "angles", "locations", "residual", "link_residuals")
 
 
+#: scalar fidelity figures of issue 19 (older result files lack them)
+_FIDELITY = ("e_rms", "vertex_mean_error_percent", "rigid_error_percent", "linear_error_percent")
+
+
 def save_result(path, result: FitResult) -> None:
-    """Write a result ``.npz`` (see README, "Result file") atomically, with exactly the name ``path``."""
+    """Write a result ``.npz`` (see docs/formats.md, "Result file") atomically, with exactly the name ``path``."""
     from .files import write_npz
     write_npz(path, result_arrays(result), compress=True)
 
@@ -716,8 +711,12 @@ def result_arrays(result: FitResult) -> dict:
                probe_load=np.float64(result.probe_load),
                p_max=np.float64(np.nan if result.p_max is None else result.p_max),
                mode=np.array(result.mode), motion=np.array(result.motion), skin=np.array(result.skin),
+               notes=np.array([str(n) for n in result.notes], dtype=str),
+               **{k: np.float64(getattr(result, k)) for k in _FIDELITY},
+               linear_rank=np.int64(result.linear_rank), articulated=np.bool_(result.articulated),
                timing_names=np.array(list(result.timings.keys()), dtype=str),
-               timing_seconds=np.array(list(result.timings.values()), dtype=np.float64))
+               timing_seconds=np.array(list(result.timings.values()), dtype=np.float64),
+               link_reason=np.array(result.link_reason))
     if result.kappa is not None:
         out["kappa"] = result.kappa
         out["load_vertices"] = result.load_vertices
@@ -732,8 +731,13 @@ def result_arrays(result: FitResult) -> dict:
 def load_result(path) -> FitResult:
     """Read a result written by :func:`save_result` (never unpickles): :func:`files.read_result`
     checks every key, dtype and shape first; a bad file is one ``ScanError`` line."""
-    from .files import read_result
-    return read_result(path)
+    from .files import BadFile, read_result_arrays
+    d = read_result_arrays(path)
+    try:
+        return _result_from_arrays(d)
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BadFile(f"{os.fspath(path)}: damaged result ({line})") from None
 
 
 def _result_from_arrays(d: dict) -> FitResult:
@@ -749,12 +753,20 @@ def _result_from_arrays(d: dict) -> FitResult:
         r.mode = str(d["mode"])
         r.motion = str(d["motion"])
         r.skin = str(d["skin"]) if "skin" in d else "seam"
+        if not prefix:  # issue 19's keys; older files lack them (NaN / defaults)
+            for k in _FIDELITY:
+                if k in d:
+                    setattr(r, k, float(d[k]))
+            r.linear_rank = int(d["linear_rank"]) if "linear_rank" in d else 0
+            r.articulated = bool(d["articulated"]) if "articulated" in d else True
+            r.notes = d["notes"].tolist() if "notes" in d else []
         if prefix + "kappa" in d:
             r.kappa = d[prefix + "kappa"]
             r.load_vertices = d[prefix + "load_vertices"]
         return r
     res = build()
     res.timings = dict(zip(d["timing_names"].tolist(), d["timing_seconds"].tolist()))
+    res.link_reason = str(d["link_reason"]) if "link_reason" in d else ""
     if "pseudo_face_labels" in d:
         res.pseudo = []
         k = 0
@@ -762,3 +774,4 @@ def _result_from_arrays(d: dict) -> FitResult:
             res.pseudo.append(build(f"pseudo{k}_"))
             k += 1
     return res
+

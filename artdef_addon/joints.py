@@ -49,3 +49,31 @@ def spanning_tree(n: int, edges: np.ndarray, cost: np.ndarray, preferred: np.nda
     if len(order) != n:
         raise ValueError("the links do not form a connected tree")
     return parents
+
+
+def lsq_motions(x0, fields, faces, labels, L, corner_weights: bool = False):
+    """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, METHOD §6).
+
+    Each link vertex counts once, or with ``corner_weights`` once per face corner it is.
+    """
+    P = fields.shape[0]
+    R = np.zeros((P, L, 3, 3))
+    t = np.zeros((P, L, 3))
+    for l in range(L):
+        vid, count = np.unique(faces[labels == l], return_counts=True)
+        w = count / count.sum() if corner_weights else np.full(len(vid), 1.0 / len(vid))
+        a = x0[vid]
+        b = a[None] + fields[:, vid]
+        am = w @ a
+        bm = np.einsum("n,pnj->pj", w, b)
+        H = np.einsum("n,ni,pnj->pij", w, a - am, b - bm[:, None])
+        U, _, Vt = np.linalg.svd(H)
+        d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+        D = np.zeros((P, 3, 3))
+        D[:, 0, 0] = 1
+        D[:, 1, 1] = 1
+        D[:, 2, 2] = d
+        Rl = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+        R[:, l] = Rl
+        t[:, l] = bm - np.einsum("pij,j->pi", Rl, am)
+    return R, t

@@ -1,10 +1,12 @@
-"""Choosing the number of links from the data (``--links auto``; issue 5).
+"""Choosing the number of links from the data (``--links auto``).
 
 The paper names the link count as its only parameter. Here it is chosen from the articulation
 error curve: for every candidate k the segmentation is re-cut from the cached tree (no new
 distances), each link moves with its robust motion, every vertex gets its best convex blend of
 nearby link motions (:func:`skinning.refined_weights`), and e(k) is the Karni–Gotsman error
-100·‖X − X̂‖/‖X − X̄‖ of that articulation. With too few links some part of the object cannot
+100·‖X − X̂‖/‖X − X̄‖ of that articulation (X̄ each vertex's mean over the fields, the normalisation
+before issue 19; the rules below read ratios of one scan's errors, which the choice of X̄ scales alike —
+docs/metrics.md). With too few links some part of the object cannot
 follow; once every articulated part has its link the curve drops to a floor (noise, local
 deformation). Where the scan has support vertices the fixed world is one more candidate motion
 (the paper's ground link). The choice is the smallest k with

@@ -29,8 +29,8 @@ def field_weights(features: list[FieldFeatures]) -> np.ndarray:
     return w
 
 
-class _Cancel(Exception):
-    pass
+class MergeCancelled(Exception):
+    """The progress callback asked to stop the merge (the fit turns it into FitCancelled)."""
 
 
 def member_key(m: np.ndarray) -> bytes:
@@ -123,7 +123,7 @@ def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.
     total = max(nc - k, 1)
     while n_active > k:
         if progress is not None and progress((nc - n_active) / total):
-            raise _Cancel()
+            raise MergeCancelled()
         flat = int(np.argmin(lam))
         a, b = divmod(flat, nc)
         if a > b:
@@ -195,7 +195,7 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
     moves only when the new side holds ``margin`` times the weight of its current side (so
     smoothly blended regions, where the medoid motions are themselves blended, stay as the
     clustering put them). Triangles in ``fixed`` (the links' medoids) never move, so no link
-    empties. Iterated until no seam moves. An addition to the paper (README, "deviations").
+    empties. Iterated until no seam moves. An addition to the paper (docs/method.md, "Deviations from the paper").
     """
     labels = labels.copy()
     k = R.shape[1]
@@ -255,14 +255,14 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
     triangles each unit stands for. ``cache`` / ``tag`` as in :func:`merge_clusters` (a link's
     medoids depend on its members only). Returns (k, P) indices into the clustered units.
     """
-    from .metric import _subsample
+    from .metric import subsample
 
     def reference(m):
         """Members the median runs over: an even subsample, or, with unit sizes, ``sample``
         members drawn evenly along the cumulative triangle count (a unit appears about in
         proportion to its size, so the plain median is the size-weighted one)."""
         if unit_size is None:
-            return _subsample(m, sample)
+            return subsample(m, sample)
         cum = np.cumsum(np.asarray(unit_size, dtype=np.float64)[m])
         n = min(sample, len(m)) if sample else len(m)
         at = np.searchsorted(cum, (np.arange(n) + 0.5) / n * cum[-1])
@@ -280,7 +280,7 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
         ref = reference(m)
         # candidates: every member of a small link, an even subsample of twice ``sample`` of a
         # big one (a rigid core is most of a link, so the subsample holds core members)
-        pool = _subsample(m, None if sample is None else 2 * sample)
+        pool = subsample(m, None if sample is None else 2 * sample)
         for p, f in enumerate(features):
             if len(m) == 1:
                 out[l, p] = m[0]
@@ -326,7 +326,7 @@ def _argmax_owned(w, faces, labels, k, units):
 
 def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
                     R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None):
-    """Give every face to the link that dominates its skin (an addition to the paper, issue 5).
+    """Give every face to the link that dominates its skin (an addition to the paper).
 
     On a smoothly skinned character the motion of a triangle between two bones is a blend of
     theirs, so the clustering (and the link's robust motion, a medoid) can sit anywhere along the
@@ -347,7 +347,7 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     ``labels`` (T,) over all faces, ``R`` (P, k, 3, 3), ``t`` (P, k, 3). Returns the new (T,) labels
     and the number of swaps kept (None when the scan is above the swaps' budget).
     """
-    from .skinning import _alternate
+    from .skinning import alternate_scored
     from .swaps import SWAP_BUDGET, TRIAL_ROUNDS, swap_links
     k = R.shape[1]
     # a rough skin is enough for the argmax: fewer rounds than the final refined skin
@@ -355,14 +355,14 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
         w, R, t, labels, swaps, e = swap_links(x0, fields, faces, labels, R, t, units=units, error=True)
     else:
         swaps = None if SWAP_LINKS and k > 2 else 0   # None: skipped, the scan is above the budget
-        w, R, t, e = _alternate(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS)
+        w, R, t, e = alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS)
     new = _argmax_owned(w, faces, labels, k, units)
     # the argmax moves seams, which changes the links' candidate reach: decompose again on the
     # new labels (from the motions just found) while that lowers the error and moves faces
     for _ in range(RELABEL_ROUNDS):
         if np.array_equal(new, labels):
             break
-        w1, R1, t1, e1 = _alternate(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w)
+        w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w)
         if not e1 < e:
             break
         labels, w, R, t, e = new, w1, R1, t1, e1

@@ -141,7 +141,8 @@ def distance_block(f: FieldFeatures, rows, cols) -> np.ndarray:
     return a
 
 
-def _workers() -> int:
+def worker_count() -> int:
+    """Threads for the blocked distance work: the CPUs this process may use, 1 to 4."""
     import os
     try:
         return max(1, min(4, len(os.sched_getaffinity(0))))
@@ -178,7 +179,7 @@ def condensed_distance(f: FieldFeatures, block_entries: int = BLOCK_ENTRIES,
             out[start(i0):start(i1)] += accumulate * blk[mask]
 
     starts = range(0, n - 1, step)
-    workers = _workers()
+    workers = worker_count()
     if workers > 1 and len(starts) > 1:
         from concurrent.futures import ThreadPoolExecutor
         with ThreadPoolExecutor(workers) as ex:
@@ -189,7 +190,8 @@ def condensed_distance(f: FieldFeatures, block_entries: int = BLOCK_ENTRIES,
     return out
 
 
-def _subsample(idx: np.ndarray, cap: int | None) -> np.ndarray:
+def subsample(idx: np.ndarray, cap: int | None) -> np.ndarray:
+    """At most ``cap`` evenly spaced members of ``idx`` (all of them when ``cap`` is None)."""
     if cap is None or len(idx) <= cap:
         return idx
     return idx[np.linspace(0, len(idx) - 1, cap).astype(np.int64)]
@@ -205,7 +207,7 @@ def distance_row_sums(f: FieldFeatures, rows, cols, block_entries: int = BLOCK_E
     """
     rows = np.asarray(rows)
     cols = np.asarray(cols)
-    pick = _subsample(np.arange(len(cols)), sample)
+    pick = subsample(np.arange(len(cols)), sample)
     sub = cols[pick]
     if col_weights is None:
         w = None

@@ -15,7 +15,7 @@ targets act before skinning):
     x(v) = Σ_l w_l(v) G_l (x0(v) + Σ_c δ_c(v) value_c).
 
 Calibration fields are reproduced exactly: δ_c is solved in that rest space (METHOD §8, with
-the residual stored before skinning — see README "deviations").
+the residual stored before skinning — see docs/method.md, "Deviations from the paper").
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The reduced method for large meshes: patches of triangles that move together (issue 6).
+"""The reduced method for large meshes: patches of triangles that move together.
 
 A documented deviation from the paper, used when the all-pairs distance of the full method
 would not fit the memory budget:

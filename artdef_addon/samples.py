@@ -7,6 +7,8 @@
   pieces that share no vertex with the hub.
 * ``greens_rod`` — a Green's-matrix scan: unit loads at four vertices bend the rod (fixed at
   its support) through three rotational springs, plus a local dent at each load.
+* ``elastic``    — not articulated: the rod's tube bent, twisted and bulged smoothly along its
+  whole length (no rigid part, no joint), 12 fields; the fit's verdict must say so (issue 19).
 
 ``make(name)`` returns a :class:`Scan`; ``make_with_truth(name)`` also returns the truth:
 ``face_labels``, ``joints`` (per link, its joint with its parent or the support), ``parents``.
@@ -18,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from .scan import Scan
 
-NAMES = ("rod", "branching", "greens_rod")
+NAMES = ("rod", "branching", "greens_rod", "elastic")
 _SQUARE = np.array([(-1, -1), (0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0)], dtype=float)
 
 
@@ -308,10 +310,48 @@ def greens_rod(loads_x=(8, 18, 30, 35), stiffness=(200.0, 150.0, 100.0), dent=0.
     return scan, truth
 
 
+def elastic(n_fields: int = 12, seed: int = 0, bend_deg: float = 0.0, bulge: float = 0.3, length: int = 36,
+            move_deg: float = 30.0):
+    """A tube wobbling like jelly: per field a smooth bend (bend angles cubic along the length, up to
+    ``bend_deg`` at the end, in two planes; the centreline integrated from the bent tangent, so the
+    axis does not stretch) and a smooth radial wobble of the cross-sections,
+    r(s, θ) = 1 + Σ_{j ≤ 4, k ≤ 2} a_jk sin(π j s/ℓ) · (cos kθ or sin kθ), every a_jk random up to ``bulge``/4;
+    then the whole tube moves rigidly (a rotation up to ``move_deg`` about its middle and a translation).
+    No part moves rigidly on its own and there is no joint: truth has ``articulated=False``."""
+    x0, faces = _tube(length)
+    rng = np.random.default_rng(seed)
+    s = np.clip(x0[:, 0], 0.0, length) / length                       # (N,) position along the tube, 0..1
+    theta = np.arctan2(x0[:, 2], x0[:, 1])
+    modes = np.stack([np.sin(np.pi * j * s) * ang for j in range(1, 5)
+                      for ang in (np.ones_like(s), np.cos(theta), np.sin(theta), np.cos(2 * theta), np.sin(2 * theta))],
+                     axis=1)                                           # (N, 20)
+    fine = np.linspace(0.0, 1.0, 64 * length + 1)
+    fields = []
+    for _ in range(n_fields):
+        c = rng.uniform(-1, 1, (2, 3))                                 # bend angle(s) = Σ c_i s^(i+1), 2 planes
+        c *= np.radians(bend_deg) / max(np.abs(c.sum(axis=1)).max(), 1e-9) * rng.uniform(0.3, 1.0)
+
+        def rotvec(u):
+            pw = np.stack([u, u ** 2, u ** 3], axis=-1)
+            return np.stack([np.zeros_like(u), pw @ c[0], pw @ c[1]], axis=-1)
+        tangent = Rotation.from_rotvec(rotvec(fine)).apply([1.0, 0.0, 0.0])
+        steps = 0.5 * (tangent[1:] + tangent[:-1]) * (length / (len(fine) - 1))
+        line = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+        centre = np.stack([np.interp(s, fine, line[:, k]) for k in range(3)], axis=1)
+        radius = 1.0 + modes @ rng.uniform(-0.25 * bulge, 0.25 * bulge, modes.shape[1])
+        off = x0 * [0.0, 1.0, 1.0] * radius[:, None]
+        x = centre + Rotation.from_rotvec(rotvec(s)).apply(off)
+        mid = np.array([0.5 * length, 0.0, 0.0])
+        whole = Rotation.from_rotvec(_random_axis(rng) * np.radians(rng.uniform(0, move_deg)))
+        fields.append(whole.apply(x - mid) + mid + rng.uniform(-0.1, 0.1, 3) * length - x0)
+    truth = dict(articulated=False)
+    return Scan(x0, faces, displacements=np.array(fields)), truth
+
+
 def make_with_truth(name: str, **kw):
     """(Scan, truth dict) for a sample name in :data:`NAMES`."""
     try:
-        fn = {"rod": rod, "branching": branching, "greens_rod": greens_rod}[name]
+        fn = {"rod": rod, "branching": branching, "greens_rod": greens_rod, "elastic": elastic}[name]
     except KeyError:
         raise ValueError(f"unknown sample {name!r}; choose from {', '.join(NAMES)}") from None
     return fn(**kw)

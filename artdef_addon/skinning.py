@@ -399,7 +399,7 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
                     R: np.ndarray, t: np.ndarray, max_influences: int = 4,
                     rings: int = 3, ground=None, radius: float | None = None,
                     pool: int | None = None) -> np.ndarray:
-    """Per-vertex convex skin weights fitted by least squares over all fields (issue 5; SSDR-style).
+    """Per-vertex convex skin weights fitted by least squares over all fields (SSDR-style).
 
     For each vertex v, with candidate links C(v) — the links of the triangles within ``rings``
     rings of v (or the ``radius``, :func:`candidate_links`), at most ``pool`` (default ``POOL``) of
@@ -477,7 +477,7 @@ def alternate(vertices, fields, faces, labels, R, t, iterations: int = 30,
     the next (each step is an exact minimiser given the other). ``w_init`` (N, L): feasible weights
     to warm-start the first weight solve from (the active set's start; see :func:`simplex_least_squares`).
     """
-    return _alternate(vertices, fields, faces, labels, R, t, iterations, tol, radius, **kw)[:3]
+    return alternate_scored(vertices, fields, faces, labels, R, t, iterations, tol, radius, **kw)[:3]
 
 
 #: a decomposition given a ``target`` error (a swap trial, :mod:`swaps`) stops once its error, less
@@ -489,8 +489,8 @@ def alternate(vertices, fields, faces, labels, R, t, iterations: int = 30,
 GIVE_UP_SLACK = 2.0
 
 
-def _alternate(vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS,
-               details=False, **kw):
+def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS,
+                     details=False, **kw):
     """:func:`alternate` returning ``(weights, R, t, error)``: error is the total squared
     articulation error Σ_p Σ_v ‖x̂ − x‖² of the returned skin. With ``details`` a fifth value
     holds :func:`_refine`'s details of the returned skin (what :mod:`swaps` prices links from).

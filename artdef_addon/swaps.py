@@ -1,4 +1,4 @@
-"""Swap links: drop the least useful link, re-seed it where the skin fits worst (issue 5).
+"""Swap links: drop the least useful link, re-seed it where the skin fits worst.
 
 An addition to the paper for tracked scans. The greedy merge of §5.2 never revisits a decision,
 so with a fixed link count a smoothly skinned character can end with a link spent on a sliver of
@@ -12,7 +12,7 @@ measures what the rig cannot explain. As Dem Bones re-initialises its weakest bo
    candidate link (an upper bound on the re-solved error);
 2. re-seeds the cheapest link at a clustered triangle whose three vertices the skin fits worst
    (the worst triangle of each of the worst-fitted links; the 2 cheapest links × 3 places are
-   tried in turn), with the least-squares motion (Kabsch/Arun, METHOD §6; ``fit._lsq_motions``) of that triangle's
+   tried in turn), with the least-squares motion (Kabsch/Arun, METHOD §6; ``joints.lsq_motions``) of that triangle's
    one-ring; the removed link's faces go to their best other candidate link;
 3. re-runs the decomposition and keeps the swap only if E falls by at least ``MIN_GAIN``.
 
@@ -22,6 +22,8 @@ segmentation (this pass is not used for them).
 from __future__ import annotations
 
 import numpy as np
+
+from .joints import lsq_motions
 
 #: a swap is kept when it lowers the decomposition error by at least this fraction
 MIN_GAIN = 0.005
@@ -80,15 +82,14 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
     weights and the labels the swaps left (each face's link before the caller re-labels by skin).
     With ``error`` the decomposition's squared error E is appended.
     """
-    from .fit import _lsq_motions
-    from .skinning import _alternate
+    from .skinning import alternate_scored
     labels = np.array(labels, copy=True)
     L = R.shape[1]
     P = fields.shape[0]
     units = np.arange(len(labels)) if units is None else np.asarray(units)
     max_swaps = L if max_swaps is None else max_swaps
 
-    w, R, t, e, info = _alternate(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS, details=True)
+    w, R, t, e, info = alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS, details=True)
     mean = fields.mean(axis=0)
     spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
     if e <= EXACT ** 2 * spread:      # the skin already explains the fields: nothing to swap
@@ -129,10 +130,10 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
             if np.any(np.bincount(new[units], minlength=L) == 0):
                 continue
             R1, t1 = R.copy(), t.copy()
-            Rr, tr = _lsq_motions(x0, fields, faces[ring], np.zeros(len(ring), dtype=np.int64), 1, corner_weights=True)
+            Rr, tr = lsq_motions(x0, fields, faces[ring], np.zeros(len(ring), dtype=np.int64), 1, corner_weights=True)
             R1[:, l], t1[:, l] = Rr[:, 0], tr[:, 0]
-            w1, R1, t1, e1, info1 = _alternate(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS,
-                                               details=True, w_init=w, target=(1.0 - MIN_GAIN) * e)
+            w1, R1, t1, e1, info1 = alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS,
+                                                     details=True, w_init=w, target=(1.0 - MIN_GAIN) * e)
             if e1 < (1.0 - MIN_GAIN) * e:
                 labels, w, R, t, e, info = new, w1, R1, t1, e1, info1
                 swaps += 1

@@ -4,7 +4,7 @@
 The scan attached to a mesh is the source of truth for fitting: it lives in
 the mesh data so that it is saved with the .blend file and undone with it.
 
-Layout on ``Mesh`` (all names are public, documented in the README):
+Layout on ``Mesh`` (all names are public, documented in docs/blender.md):
 
 * point attribute ``artdef_field_000`` ... (FLOAT_VECTOR): one per field.  For
   a Green's scan this is the raw Green's column ``greens[:, c].reshape(N, 3)``

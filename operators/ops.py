@@ -1,33 +1,21 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """ArtDef operators (public scripting API: ``bpy.ops.artdef.*``)."""
 
-import inspect
 import threading
 import time
 import traceback
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from ..artdef_addon import cost as _cost
+from ..artdef_addon import api as _api
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
-from ..artdef_addon.files import MAX_AUTO_LINKS
+from ..artdef_addon.options import FitOptions, OptionsError
 from . import fitquality, io, rig
-from .props import (BUDGET_MIN, BUDGET_SOFT_MIN, MEMORY_BUDGET_DESCRIPTION, MODE_ITEMS,
-                    MOTION_ITEMS, REDUCE_ITEMS, SKIN_ITEMS)
-
-try:  # automatic link count (issue 5), in cores that have it
-    from ..artdef_addon import linkcount as _linkcount
-except ImportError:
-    _linkcount = None
-
-#: The core's ``fit()`` takes ``skin='seam'|'refined'`` (refined skin weights, issue 5).
-HAS_SKIN = "skin" in inspect.signature(_fit.fit).parameters
-#: The core can choose the link count (``linkcount.choose_links``).
-HAS_AUTO_LINKS = _linkcount is not None and hasattr(_linkcount, "choose_links")
+from .props import SETTING_NAMES, FitSettings, enum_id, options_from, store_options
 
 #: Extra cancel checks consulted by every fit's progress callback:
 #: ``hook(stage, fraction) -> bool`` (True cancels).  For scripts and tests;
@@ -38,97 +26,20 @@ PROGRESS_HOOKS = []
 #: scripting and tests — not saved in the .blend).
 LAST_RESULTS = {}
 
-#: Segmenter cache shared by Preview Links and Fit: object name ->
-#: (key, Segmenter), the key being the scan fingerprint and the method settings
-#: that shape the segmenter (see :func:`segmenter_key`).  The segmenter holds the
-#: expensive pairwise distances/trees, so changing the link count does not
-#: recompute them; changing Reduced Method or Memory Budget does.
-_SEGMENTERS = {}
-_SEGMENTER_CACHE_SIZE = 2
-
-
-#: Fit jobs started in a worker thread (interactive path); a cancelled one may
-#: still be winding down when the next fit or preview starts.
-_THREAD_JOBS = []
-
-
-# --------------------------------------------------------------------------
-# method settings: reduced method and memory budget (issue 6)
-# --------------------------------------------------------------------------
-
-GB = 2 ** 30  # the core's budgets are bytes; DEFAULT_BUDGET is 2 * 2**30
-
-
-def strategy_for(kind):
-    """The strategy the core's Segmenter picks by default ("auto")."""
-    return "paper" if kind == "greens" else "summed"
-
-
 def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0, links=None,
                 auto=False):
-    """What a fit with these settings will do, from counts only (no fit).
-
-    Returns ``(estimate, reduce_arg)``: the core's :class:`cost.Estimate` for the
-    method that will run (``estimate.reduced``) and the ``reduce`` argument for the
-    Segmenter (None: the core decides by the budget, and notes why). ``links``: the link
-    count the fit will use (its skin decompositions grow with it; None: the core's default),
-    ``auto``: Auto Links (the link-count search, priced as the core prices it).
-    """
-    budget = float(budget_gb) * GB
-    strategy = strategy_for(kind)
-    kw = dict(links=None if auto or links is None else int(links), auto=bool(auto))
-    if reduce == 'OFF':
-        return _cost.estimate(triangles, fields, vertices, strategy, float("inf"), **kw), False
-    if reduce == 'ON':
-        # the estimate of the reduced branch, with the patch count this budget gives
-        units = min(triangles, _cost.reduced_units(budget, fields))
-        return _cost.estimate(triangles, fields, vertices, strategy, 0.0, units=units, **kw), True
-    return _cost.estimate(triangles, fields, vertices, strategy, budget, **kw), None
+    """What a fit with these settings will do, from counts only (the core's :func:`api.plan`):
+    ``(estimate, reduce_arg)``. ``links``: the link count the fit will use (its skin
+    decompositions grow with it; None: the core's default), ``auto``: Auto Links (the
+    link-count search, priced as the core prices it)."""
+    return _api.plan(triangles, fields, vertices, kind,
+                     FitOptions(reduce=reduce.lower(), memory_budget=float(budget_gb)),
+                     links=None if auto or links is None else int(links), auto=bool(auto))
 
 
-def segmenter_key(fingerprint, reduced, reduce='AUTO', budget_gb=2.0):
-    """Cache key of a Segmenter: what its result depends on.
-
-    The full method does not depend on the budget (any budget, Auto or Off give the
-    same segmenter); the reduced one depends on it through the patch count, and under
-    Auto its note quotes the budget.
-    """
-    if not reduced:
-        return (fingerprint, False)
-    if reduce == 'AUTO':
-        return (fingerprint, True, 'AUTO', round(float(budget_gb), 6))
-    return (fingerprint, True, reduce, _cost.reduced_units(float(budget_gb) * GB))
-
-
-def valid_triangles(scan):
-    """Triangles the core segments (degenerate ones take their neighbours' link)."""
-    return scan.n_faces - len(scan.degenerate_faces)
-
-
-def planned_key(stored, reduce, budget_gb):
-    """``(key, reduce_arg)`` of the Segmenter these settings make for ``stored``."""
-    scan = stored.scan
-    est, reduce_arg = method_plan(valid_triangles(scan), scan.n_fields, scan.n_vertices,
-                                  scan.kind, reduce, budget_gb)
-    return segmenter_key(stored.fingerprint, est.reduced, reduce, budget_gb), reduce_arg
-
-
-def _cached_segmenter(name, key):
-    """The cached Segmenter for this key, unless a worker thread still uses it."""
-    cached = _SEGMENTERS.get(name)
-    if cached is None or cached[0] != key:
-        return None
-    _THREAD_JOBS[:] = [j for j in _THREAD_JOBS if j.thread.is_alive()]
-    if any(j.segmenter is cached[1] for j in _THREAD_JOBS):
-        return None  # never share one Segmenter between two threads
-    return cached[1]
-
-
-def _cache_segmenter(name, key, seg):
-    _SEGMENTERS.pop(name, None)
-    _SEGMENTERS[name] = (key, seg)
-    while len(_SEGMENTERS) > _SEGMENTER_CACHE_SIZE:
-        _SEGMENTERS.pop(next(iter(_SEGMENTERS)))
+def cached_segmentation(obj):
+    """The core's kept segmentation of ``obj``'s scan for its settings, or None (tests, scripts)."""
+    return _api.cached(io.read_scan(obj).scan, options_from(obj.artdef))
 
 
 def last_result(obj):
@@ -295,18 +206,14 @@ def stage_text(stage, fraction):
 
 
 class _FitJob:
-    """One fit: the core runs here (possibly in a worker thread); no bpy access."""
+    """One fit: the core's public :func:`artdef_addon.fit` runs here (possibly in a worker
+    thread); no bpy access."""
 
-    def __init__(self, scan, links, mode, motion, p_max, segmenter=None, load_index=0,
-                 skin=None, max_links=None, reduce=None, budget=_cost.DEFAULT_BUDGET):
-        self.scan, self.links, self.mode, self.motion, self.p_max = scan, links, mode, motion, p_max
-        self.reduce = reduce            # Segmenter's reduce: None (by budget), True, False
-        self.budget = budget            # bytes
+    def __init__(self, scan, links, options=None, load_index=0):
+        self.scan, self.links = scan, links            # links: int or "auto"
+        self.options = options if options is not None else FitOptions()
         self.load_index = load_index
-        self.skin = skin                # 'seam' | 'refined' | None: the core's default
-        self.max_links = max_links      # not None: choose the link count, up to this
         self.link_reason = ""
-        self.segmenter = segmenter  # cached one (same scan), or None: made in run()
         self.model = None            # the result whose rig is built (pseudo: one load point's)
         self.vertex_residual = None  # (N,) articulation residual of ``model``
         self.stage, self.fraction = "start", 0.0
@@ -333,35 +240,12 @@ class _FitJob:
             return stop
         t0 = time.perf_counter()
         try:
-            if self.segmenter is None:
-                self.segmenter = _fit.Segmenter(self.scan, callback, reduce=self.reduce,
-                                                budget=self.budget)
-            if self.max_links is not None:
-                self.segmenter.progress = callback
-                self.links_fraction = 0.0
-                try:
-                    choice = _linkcount.choose_links(self.segmenter, self.max_links,
-                                                     progress=callback)
-                finally:
-                    self.links_fraction = None
-                self.links, self.link_reason = int(choice.links), str(choice.reason)
-                errors = getattr(choice, "errors", None)
-                self.link_errors = [] if errors is None else [float(e) for e in errors]
-            extra = {} if self.skin is None else {"skin": self.skin}
-            reuse = getattr(choice, "reusable", None) if self.max_links is not None else None
-            self.result = reuse(self.mode, self.motion, self.skin) if reuse is not None else None
-            if self.result is not None:     # the chooser fitted this count already
-                self.result.p_max = self.p_max
-            else:
-                self.result = _fit.fit(self.scan, self.links, mode=self.mode, motion=self.motion,
-                                       p_max=self.p_max, progress=callback, segmenter=self.segmenter,
-                                       **extra)
-            self._quality()
+            self.result = _api.fit(self.scan, self.links, self.options, callback)
+            self.links_fraction = None
+            self.links, self.link_reason = self.result.n_links, self.result.link_reason
+            self.model, self.vertex_residual = model_of(self.result, self.scan, self.load_index)
         except BaseException as err:  # reported on the main thread
             self.error = err
-        finally:
-            if self.segmenter is not None:
-                self.segmenter.progress = None  # don't keep this job's callback in the cache
         self.seconds = time.perf_counter() - t0
 
     @property
@@ -371,7 +255,7 @@ class _FitJob:
 
     @property
     def reduced(self):
-        return bool(getattr(self.segmenter, "reduced", False))
+        return bool(getattr(self.result, "reduced", False))
 
     def status_text(self):
         """What the status bar shows while the job runs."""
@@ -381,22 +265,113 @@ class _FitJob:
             text = f"{stage_text('links', self.links_fraction)} ({text})"
         return text
 
-    def _quality(self):
-        """The model to build and its per-vertex articulation residual."""
-        model, fields = self.result, None
-        if self.mode == "pseudo":
-            pseudo = self.result.pseudo or []
-            if self.load_index >= len(pseudo):
-                return  # reported by the operator
-            model = pseudo[self.load_index]
-            fields = self.segmenter.groups[self.load_index]
-        self.model = model
-        self.vertex_residual = fitquality.vertex_residual(model, self.scan, fields)
-
     def start_thread(self):
         self.thread = threading.Thread(target=self.run, name="artdef-fit", daemon=True)
-        _THREAD_JOBS.append(self)
         self.thread.start()
+
+
+def model_of(result, scan, load_index=0):
+    """``(model, vertex residual (N,))``: the result whose rig is built — the result, or in pseudo
+    mode load point ``load_index``'s model (None if there is none) — and its per-vertex
+    articulation residual. Numpy only (runs in the fit's thread)."""
+    model, fields = result, None
+    if result.mode == "pseudo":
+        pseudo = result.pseudo or []
+        if load_index >= len(pseudo):
+            return None, None
+        model = pseudo[load_index]
+        fields = result.groups[load_index] if result.groups else [3 * load_index + d for d in range(3)]
+    return model, fitquality.vertex_residual(model, scan, fields)
+
+
+def apply_result(context, obj, result, scan, tri_polygons, *, load_index=0, frames_per_field=10,
+                 auto_links=None, seconds=0.0, model=None, vertex_residual=None):
+    """Build the rig of ``result`` (a fit of ``scan``) on mesh ``obj`` and record it: vertex
+    groups, armature, residual shape keys, load controls or replay, residual colours, the
+    object's settings and summary. The one way a rig is made from a fit — the Fit operator after
+    its job and the command line (``operators/headless.py``) both call it. Main thread only;
+    on failure the rig is cleared and the error raised."""
+    if model is None:
+        model, vertex_residual = model_of(result, scan, load_index)
+    if model is None:
+        raise ValueError("The fit returned no pseudo-articulation for that load point")
+    pseudo = result.mode == "pseudo"
+    try:
+        rig.build_rig(context, obj, model, tri_polygons, scan.kind, [load_index] if pseudo else None,
+                      frames_per_field)
+        scale = float(vertex_residual.max()) if len(vertex_residual) else 0.0
+        rig.write_residual(obj.data, vertex_residual, scale)
+    except Exception:
+        rig.clear_rig(obj, context.scene)
+        raise
+    LAST_RESULTS[obj.name] = model
+    store_summary(obj, result, model, scan, vertex_residual, load_index=load_index,
+                  frames_per_field=frames_per_field, seconds=seconds, auto_links=auto_links)
+    return model
+
+
+def store_summary(obj, result, model, scan, vertex_residual, *, load_index=0, frames_per_field=10,
+                  seconds=0.0, auto_links=None):
+    """The object's record of the fit (panel) and the settings that made it."""
+    st = obj.artdef
+    o = result.options
+    pseudo = result.mode == "pseudo"
+    st.has_fit = True
+    st.fit_links = int(model.n_links)
+    st.fit_mode = enum_id(result.mode)
+    st.fit_motion = enum_id(result.motion)
+    st.fit_kind = scan.kind
+    st.fit_load_index = load_index if pseudo else -1
+    st.fit_p_max = result.p_max or 0.0
+    st.fit_rms_articulation = float(model.rms_articulation)
+    st.fit_rms_total = float(model.rms_total)
+    st.fit_seconds = seconds
+    timings = getattr(model, "timings", None) or getattr(result, "timings", None) or {}
+    st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
+    e = float(model.articulation_error_percent)
+    st.fit_articulation_percent = e if e == e else -1.0   # −1: undefined (degenerate frames), shown "n/a"
+    # issue 19's figures (NaN/absent on a pseudo model or an old result: shown as unknown)
+    st.fit_e_rms = float(getattr(model, "e_rms", float("nan")))
+    st.fit_rigid_percent = float(getattr(model, "rigid_error_percent", float("nan")))
+    st.fit_linear_percent = float(getattr(model, "linear_error_percent", float("nan")))
+    st.fit_linear_rank = int(getattr(model, "linear_rank", 0))
+    st.fit_articulated = bool(getattr(model, "articulated", True))
+    res = vertex_residual
+    st.fit_residual_max = float(res.max()) if len(res) else 0.0
+    st.fit_residual_mean = float(res.mean()) if len(res) else 0.0
+    st.fit_diagonal = float(np.linalg.norm(np.ptp(scan.vertices, axis=0)))
+    st.fit_link_stats.clear()
+    for item in fitquality.link_stats(model):
+        rec = st.fit_link_stats.add()
+        rec.name = rig.GROUP_FMT.format(item["link"])
+        for key, value in item.items():
+            setattr(rec, key, value)
+    if st.set_frame_range:
+        start, end = st.replay_frame_range
+        if scan.kind == "greens":
+            st.fit_replay = (f"load sweep: load k along axis d at the probe load at frame "
+                             f"(2(3k+d)+1)x{frames_per_field}, scene frames set to {start}-{end}")
+        else:
+            st.fit_replay = (f"replay: field p at frame (p+1)x{frames_per_field}, "
+                             f"scene frames set to {start}-{end}")
+    else:
+        st.fit_replay = ""
+    st.fit_summary = str(model.summary())
+    if st.fit_replay:
+        st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
+    st.fit_link_reason = result.link_reason
+    obj["artdef_link_errors"] = [float(e) for e in (result.link_errors or [])]  # panel's curve
+    st.fit_skin = str(getattr(model, "skin", "") or "")
+    st.fit_notes = "\n".join(str(n) for n in (result.notes or []))
+    st.fit_reduced = bool(result.reduced)
+    # Remember the settings that made this rig (Links: the count used, also when chosen)
+    if o is not None:
+        store_options(st, o)
+    st.links = int(model.n_links)
+    st.load_index = load_index
+    st.frames_per_field = frames_per_field
+    if auto_links is not None:
+        st.auto_links = auto_links
 
 
 class _WorkerModal:
@@ -472,47 +447,13 @@ class _WorkerModal:
         self._end(context)
 
 
-class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
+class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
     """Fit an articulated rig to the active mesh's scan: vertex groups, an armature, residual shape keys, and load controls (Green's scans) or a replay action (tracked scans). Pseudo mode fits each load point separately and builds the rig of the load point chosen by Load Index. Esc cancels without changing the scene"""
     bl_idname = "artdef.fit"
     bl_label = "Fit Articulation"
     bl_options = {'REGISTER', 'UNDO'}
 
-    links: IntProperty(name="Links", default=3, min=1, soft_max=64,
-                       description="Number of rigid links (bones) to fit")
-    mode: EnumProperty(name="Mode", items=MODE_ITEMS, default='GLOBAL',
-                       description="Global fit (default), or the pseudo-articulation of one "
-                                   "load point (Load Index)")
-    motion: EnumProperty(name="Motion", items=MOTION_ITEMS, default='ROBUST',
-                         description="How each link's rigid motion is estimated")
-    p_max: FloatProperty(name="Max Hardening", default=0.0, min=0.0, soft_max=20.0,
-                         description="Strain hardening limit in units of the probe load "
-                                     "(> 1); 0 = off (linear)")
-    load_index: IntProperty(name="Load Index", default=0, min=0,
-                            description="Pseudo mode: the load point whose model becomes the rig")
-    frames_per_field: IntProperty(name="Frames per Field", default=10, min=1, soft_max=100,
-                                  description="Tracked scans: the replay action keys field p at "
-                                              "frame (p+1) x this and the rest pose at frame 0. "
-                                              "Green's scans: the load sweep takes 2 x this frames "
-                                              "per load point and axis (0, probe load, 0). The "
-                                              "scene's frame range is set to cover it")
-    auto_links: BoolProperty(name="Auto Links", default=False,
-                             description="Choose the number of links from the data (where the "
-                                         "articulation error stops dropping), up to Max Links; "
-                                         "the reason is reported. Turn off to set Links yourself")
-    max_links: IntProperty(name="Max Links", default=30, min=1, max=MAX_AUTO_LINKS, soft_max=64,
-                           description="Auto Links: the largest link count tried")
-    skin: EnumProperty(name="Skin", items=SKIN_ITEMS, default='AUTO',
-                       description="Skin weights: seam-blended, or refined per vertex by least "
-                                   "squares over all fields (Auto: refined for tracked scans, "
-                                   "seam for Green's scans)")
-    reduce: EnumProperty(name="Reduced Method", items=REDUCE_ITEMS, default='AUTO',
-                         description="Segment small patches of triangles instead of every "
-                                     "triangle (large scans); Auto: when the full method would "
-                                     "exceed the Memory Budget")
-    memory_budget: FloatProperty(name="Memory Budget", default=2.0, min=BUDGET_MIN,
-                                 soft_min=BUDGET_SOFT_MIN, soft_max=64.0, precision=2,
-                                 description=MEMORY_BUDGET_DESCRIPTION)
+    # the properties: every fit setting, from props.FitSettings (the core's FitOptions declaration)
 
     _what = "fit"
 
@@ -526,8 +467,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         props = self.properties
         if props.is_property_set("links") and not props.is_property_set("auto_links"):
             self.auto_links = False  # fit(links=L) means L links
-        for name in ("links", "mode", "motion", "p_max", "load_index", "frames_per_field",
-                     "auto_links", "max_links", "skin", "reduce", "memory_budget"):
+        for name in SETTING_NAMES:
             if not props.is_property_set(name):
                 setattr(self, name, getattr(st, name))
 
@@ -535,8 +475,11 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         """Read the scan and check the settings; returns a job or None (reported)."""
         obj = context.active_object
         self._settings(obj)
-        if self.p_max != 0.0 and self.p_max <= 1.0:
-            self.report({'ERROR'}, f"Max Hardening must be 0 (off) or > 1, got {self.p_max:g}")
+        try:
+            options = options_from(self)
+        except OptionsError as err:
+            decl = FitOptions.declaration().get(err.option)
+            self.report({'ERROR'}, f"{decl[1].label}: {err}" if decl else str(err))
             return None
         try:
             stored = io.read_scan(obj)
@@ -544,7 +487,7 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
             self.report({'ERROR'}, str(err))
             return None
         scan = stored.scan
-        if self.mode == 'PSEUDO':
+        if options.mode == "pseudo":
             if scan.kind != "greens":
                 self.report({'ERROR'}, "Pseudo mode needs a Green's scan (with load points)")
                 return None
@@ -552,23 +495,9 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
                 self.report({'ERROR'}, f"Load Index {self.load_index} is out of range: the scan has "
                                        f"{len(scan.load_vertices)} load points")
                 return None
-        if self.skin != 'AUTO' and not HAS_SKIN:
-            self.report({'ERROR'}, "This ArtDef core has no skin option: use Skin 'Auto'")
-            return None
-        if self.auto_links and not HAS_AUTO_LINKS:
-            self.report({'ERROR'}, "This ArtDef core cannot choose the link count: "
-                                   "turn Auto Links off")
-            return None
-        key, reduce_arg = planned_key(stored, self.reduce, self.memory_budget)
-        job = _FitJob(scan, self.links, self.mode.lower(), self.motion.lower(),
-                      None if self.p_max == 0.0 else float(self.p_max),
-                      _cached_segmenter(obj.name, key), self.load_index,
-                      skin=None if self.skin == 'AUTO' else self.skin.lower(),
-                      max_links=self.max_links if self.auto_links else None,
-                      reduce=reduce_arg, budget=self.memory_budget * GB)
+        job = _FitJob(scan, "auto" if self.auto_links else self.links, options, self.load_index)
         job.obj_name = obj.name
         job.tri_polygons = stored.tri_polygons
-        job.fingerprint = stored.fingerprint
         return job
 
     def _finish(self, context, job):
@@ -579,31 +508,21 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
         if obj is None or obj.type != 'MESH' or len(obj.data.vertices) != len(job.scan.vertices):
             self.report({'ERROR'}, "The mesh changed while fitting; nothing was created")
             return {'CANCELLED'}
-        # keyed on what the core actually built (the plan predicts it; never trust a guess)
-        _cache_segmenter(job.obj_name, segmenter_key(job.fingerprint, job.reduced, self.reduce,
-                                                     self.memory_budget), job.segmenter)
         self.links = job.links  # chosen by Auto Links, or as given
         if job.link_reason:
             self.report({'INFO'}, job.link_reason)
-        model = job.model
-        load_names = None
-        if self.mode == 'PSEUDO':
-            if model is None:
-                self.report({'ERROR'}, "The fit returned no pseudo-articulation for that load point")
-                return {'CANCELLED'}
-            load_names = [self.load_index]
+        if job.model is None:
+            self.report({'ERROR'}, "The fit returned no pseudo-articulation for that load point")
+            return {'CANCELLED'}
         try:
-            rig.build_rig(context, obj, model, job.tri_polygons, job.scan.kind, load_names,
-                          self.frames_per_field)
-            scale = float(job.vertex_residual.max()) if len(job.vertex_residual) else 0.0
-            rig.write_residual(obj.data, job.vertex_residual, scale)
+            model = apply_result(context, obj, job.result, job.scan, job.tri_polygons,
+                                 load_index=self.load_index, frames_per_field=self.frames_per_field,
+                                 auto_links=self.auto_links, seconds=job.seconds, model=job.model,
+                                 vertex_residual=job.vertex_residual)
         except Exception as err:
             traceback.print_exc()
-            rig.clear_rig(obj, context.scene)
             self.report({'ERROR'}, f"Building the rig failed: {err}")
             return {'CANCELLED'}
-        LAST_RESULTS[obj.name] = model
-        self._store_summary(obj, model, job)
         # The core's notes (why and how the reduced method ran) go to the Info log; the
         # summary, reported last, is what the status bar keeps, so it names the method too.
         for note in job.notes:
@@ -615,61 +534,6 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
                               + ("; reduced method on patches" if job.reduced else "")
                               + (f"; {obj.artdef.fit_replay}" if obj.artdef.fit_replay else ""))
         return {'FINISHED'}
-
-    def _store_summary(self, obj, model, job):
-        st = obj.artdef
-        st.has_fit = True
-        st.fit_links = int(model.n_links)
-        st.fit_mode = self.mode
-        st.fit_motion = self.motion
-        st.fit_kind = job.scan.kind
-        st.fit_load_index = self.load_index if self.mode == 'PSEUDO' else -1
-        st.fit_p_max = self.p_max
-        st.fit_rms_articulation = float(model.rms_articulation)
-        st.fit_rms_total = float(model.rms_total)
-        st.fit_seconds = job.seconds
-        timings = getattr(model, "timings", None) or getattr(job.result, "timings", None) or {}
-        st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
-        e = float(model.articulation_error_percent)
-        st.fit_articulation_percent = e if e == e else -1.0   # −1: undefined (one field), shown "n/a"
-        res = job.vertex_residual
-        st.fit_residual_max = float(res.max()) if len(res) else 0.0
-        st.fit_residual_mean = float(res.mean()) if len(res) else 0.0
-        st.fit_diagonal = float(np.linalg.norm(np.ptp(job.scan.vertices, axis=0)))
-        st.fit_link_stats.clear()
-        for item in fitquality.link_stats(model):
-            rec = st.fit_link_stats.add()
-            rec.name = rig.GROUP_FMT.format(item["link"])
-            for key, value in item.items():
-                setattr(rec, key, value)
-        if st.set_frame_range:
-            start, end = st.replay_frame_range
-            if job.scan.kind == "greens":
-                st.fit_replay = (f"load sweep: load k along axis d at the probe load at frame "
-                                 f"(2(3k+d)+1)x{self.frames_per_field}, scene frames set to "
-                                 f"{start}-{end}")
-            else:
-                st.fit_replay = (f"replay: field p at frame (p+1)x{self.frames_per_field}, "
-                                 f"scene frames set to {start}-{end}")
-        else:
-            st.fit_replay = ""
-        try:
-            st.fit_summary = str(model.summary())
-        except Exception:  # the summary is informative only
-            st.fit_summary = ""
-        if st.fit_replay:
-            st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
-        st.fit_link_reason = job.link_reason
-        obj["artdef_link_errors"] = list(getattr(job, "link_errors", None) or [])  # panel's curve
-        st.fit_skin = str(getattr(model, "skin", "") or "")
-        st.fit_notes = "\n".join(job.notes)
-        st.fit_reduced = job.reduced
-        # Remember the settings that made this rig (Links: the count used, also when chosen).
-        st.links, st.mode, st.motion = self.links, self.mode, self.motion
-        st.p_max, st.load_index = self.p_max, self.load_index
-        st.frames_per_field = self.frames_per_field
-        st.auto_links, st.max_links, st.skin = self.auto_links, self.max_links, self.skin
-        st.reduce, st.memory_budget = self.reduce, self.memory_budget
 
     # -- synchronous path (scripts, background mode) -------------------------
     def execute(self, context):
@@ -701,15 +565,15 @@ class ARTDEF_OT_fit(_WorkerModal, bpy.types.Operator):
 class _PreviewJob:
     """Segment one scan for Preview Links (possibly in a worker thread); no bpy access.
 
-    Builds the Segmenter unless a cached one fits, then cuts it to ``links``; the progress
-    callback reports the stage and cancels on Esc, like the fit's.
+    The core's :func:`artdef_addon.segment` keeps the segmentation, which the next preview or fit
+    of the same scan and method settings reuses; the progress callback reports the stage and
+    cancels on Esc, like the fit's.
     """
 
-    def __init__(self, obj_name, stored, reduce_arg, budget, links, segmenter=None):
-        self.obj_name, self.stored, self.reduce_arg, self.budget = obj_name, stored, reduce_arg, budget
+    def __init__(self, obj_name, stored, options, links):
+        self.obj_name, self.stored, self.options = obj_name, stored, options
         self.links = links
-        self.segmenter = segmenter
-        self.cached = segmenter is not None
+        self.cached = _api.cached(stored.scan, options) is not None
         self.labels = None
         self.error = None
         self.stage, self.fraction = "start", 0.0
@@ -724,33 +588,21 @@ class _PreviewJob:
 
     def run(self):
         try:
-            if self.segmenter is None:
-                self.segmenter = _fit.Segmenter(self.stored.scan, self.progress, reduce=self.reduce_arg,
-                                                budget=self.budget)
-            self.segmenter.progress = self.progress
-            self.labels = self.segmenter.labels(self.links)
+            self.labels, _, _ = _api.segment(self.stored.scan, self.links, self.options, self.progress)
         except BaseException as err:  # reported on the main thread
             self.error = err
-        finally:
-            if self.segmenter is not None:
-                self.segmenter.progress = None
 
     def status_text(self):
         return stage_text(self.stage, self.fraction)
 
     def start_thread(self):
         self.thread = threading.Thread(target=self.run, name="artdef-preview", daemon=True)
-        _THREAD_JOBS.append(self)
         self.thread.start()
 
 
 def _preview_job(obj, links):
     """A :class:`_PreviewJob` for ``obj``'s scan and its Reduced Method / Memory Budget settings."""
-    stored = io.read_scan(obj)
-    st = obj.artdef
-    key, reduce_arg = planned_key(stored, st.reduce, st.memory_budget)
-    seg = _cached_segmenter(obj.name, key)
-    return _PreviewJob(obj.name, stored, reduce_arg, st.memory_budget * GB, links, seg)
+    return _PreviewJob(obj.name, io.read_scan(obj), options_from(obj.artdef), links)
 
 
 class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
@@ -801,14 +653,11 @@ class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
         """Report the job's outcome; on success colour the faces.  Main thread only."""
         if self._failed(job):
             return {'CANCELLED'}
-        seg, stored = job.segmenter, job.stored
+        stored = job.stored
         obj = bpy.data.objects.get(job.obj_name)
         if obj is None or obj.type != 'MESH' or len(obj.data.vertices) != len(stored.scan.vertices):
             self.report({'ERROR'}, f"'{job.obj_name}' changed while it was being segmented; nothing done")
             return {'CANCELLED'}
-        st = obj.artdef
-        _cache_segmenter(obj.name, segmenter_key(stored.fingerprint, seg.reduced, st.reduce,
-                                                 st.memory_budget), seg)
         labels = job.labels
         rig.write_link_colours(obj.data, labels, stored.tri_polygons)
         obj.data.update()
@@ -912,5 +761,5 @@ def unregister():
     bpy.types.TOPBAR_MT_file_import.remove(menu_import)
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)
-    _SEGMENTERS.clear()
+    _api.clear_cache()
     LAST_RESULTS.clear()

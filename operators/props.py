@@ -11,40 +11,86 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
                        StringProperty)
 from bpy.types import PropertyGroup
 
-from ..artdef_addon.files import MAX_AUTO_LINKS  # bounded work: the command line's --max-links limit
+from ..artdef_addon.options import FitOptions
 
-MODE_ITEMS = (
-    ('GLOBAL', "Global", "One articulated model for all fields (the main path)"),
-    ('PSEUDO', "Pseudo", "Fit each load point separately and build the rig of one load "
-                         "point's model (Load Index)"),
-)
-SKIN_ITEMS = (
-    ('AUTO', "Auto", "Refined for tracked scans, seam-blended for Green's scans"),
-    ('SEAM', "Seam", "Weights blended across the seams between links"),
-    ('REFINED', "Refined", "Per-vertex convex weights (at most 4 nearby links) solved by least "
-                           "squares over all fields: reproduces the capture closely with few bones"),
-)
-REDUCE_ITEMS = (
-    ('AUTO', "Auto", "Use the reduced method on patches only when the full method would need more "
-                     "memory than the Memory Budget (the fit then says so)"),
-    ('ON', "On", "Always use the reduced method: the method on small patches of triangles whose "
-                 "motions agree, seams refined per triangle (fast, bounded memory)"),
-    ('OFF', "Off", "Always use the paper's full method over all triangle pairs (memory grows "
-                   "with the square of the triangle count)"),
-)
-#: Memory Budget: the UI drags down to ``soft_min``; a script may go lower (tests, tiny scans).
-BUDGET_MIN, BUDGET_SOFT_MIN = 0.001, 0.1
-MEMORY_BUDGET_DESCRIPTION = (
-    "Most memory the fit may use, in GB (2^30 bytes). With Reduced Method 'Auto' a scan whose "
-    "full method would need more switches to the reduced method on patches instead of running "
-    "out of memory; it also sets how many patches the reduced method uses")
-MOTION_ITEMS = (
-    ('ROBUST', "Robust", "Each link moves with its motion centroid: the member triangle whose "
-                         "motion agrees exactly with at least half of the link (a medoid that "
-                         "stays correct with up to 50% outlying triangles)"),
-    ('LSQ', "Least Squares", "Least-squares rigid motion fitted to all the link's triangles "
-                             "(for comparison)"),
-)
+
+def enum_id(value: str) -> str:
+    """Blender enum identifier of a canonical option value (the one spelling, upper-cased)."""
+    return value.upper()
+
+
+def _option_property(default, opt):
+    """A ``bpy.props`` property for one :class:`FitOptions` field, from its declaration."""
+    description = opt.description + (f" [{opt.unit}]" if opt.unit else "")
+    if opt.choices:
+        items = tuple((enum_id(c.value), c.label, c.description) for c in opt.choices)
+        return EnumProperty(name=opt.label, items=items, default=enum_id(default), description=description)
+    bounds = {k: getattr(opt, k) for k in ("soft_min", "soft_max", "max") if getattr(opt, k) is not None}
+    if opt.optional:        # None ("off") is 0 in Blender, the lower bound is checked on use
+        description += "; 0 turns it off"
+        bounds["min"] = 0.0
+    elif opt.min is not None:
+        bounds["min"] = opt.min
+    if opt.type is int:
+        return IntProperty(name=opt.label, default=int(default), description=description,
+                           **{k: int(v) for k, v in bounds.items()})
+    return FloatProperty(name=opt.label, default=0.0 if default is None else float(default),
+                         description=description, precision=2, **bounds)
+
+
+#: Settings of the Blender layer only (how the rig is made from a result, how the count is set)
+_RIG_SETTINGS = {
+    "links": IntProperty(name="Links", default=3, min=1, soft_max=64,
+                         description="Number of rigid links (bones) to fit"),
+    "auto_links": BoolProperty(name="Auto Links", default=False,
+                               description="Choose the number of links from the data (where the "
+                                           "articulation error stops dropping), up to Max Links; "
+                                           "the reason is reported. Turn off to set Links yourself"),
+    "load_index": IntProperty(name="Load Index", default=0, min=0,
+                              description="Pseudo mode: the load point whose model becomes the rig"),
+    "frames_per_field": IntProperty(
+        name="Frames per Field", default=10, min=1, soft_max=100,
+        description="Tracked scans: the replay action keys field p at frame (p+1) x this and the "
+                    "rest pose at frame 0. Green's scans: the load sweep takes 2 x this frames per "
+                    "load point and axis (0, probe load, 0). The scene's frame range is set to cover it"),
+}
+
+#: Every fit setting as a property: the rig settings above and one per FitOptions field
+SETTING_NAMES = tuple(_RIG_SETTINGS) + tuple(FitOptions.declaration())
+
+
+class FitSettings:
+    """Mixin holding every fit setting as ``bpy.props`` annotations, shared by the Fit operator
+    and the object's settings (the glTF add-on's pattern); the :class:`FitOptions` ones are made
+    from the core's declaration by :func:`_option_property`."""
+    __annotations__ = {**_RIG_SETTINGS,
+                       **{name: _option_property(default, opt)
+                          for name, (default, opt) in FitOptions.declaration().items()}}
+
+
+def options_from(settings) -> FitOptions:
+    """The core's :class:`FitOptions` from a :class:`FitSettings` holder (operator or object
+    settings); :class:`OptionsError` names a value out of range."""
+    values = {}
+    for name, (default, opt) in FitOptions.declaration().items():
+        v = getattr(settings, name)
+        if opt.choices:
+            v = v.lower()
+        elif opt.optional and v == 0:
+            v = None
+        values[name] = v
+    return FitOptions(**values)
+
+
+def store_options(settings, options: FitOptions) -> None:
+    """Write ``options`` into a :class:`FitSettings` holder (the inverse of :func:`options_from`)."""
+    for name, (default, opt) in FitOptions.declaration().items():
+        v = getattr(options, name)
+        if opt.choices:
+            v = enum_id(v)
+        elif v is None:
+            v = 0.0
+        setattr(settings, name, v)
 
 
 class ARTDEF_PG_name(PropertyGroup):
@@ -69,41 +115,9 @@ class ARTDEF_PG_link_stats(PropertyGroup):
     triangles: IntProperty(name="Triangles")
 
 
-class ARTDEF_PG_object(PropertyGroup):
-    # ---- fit settings (shown in the panel, defaults for the operators) ----
-    links: IntProperty(
-        name="Links", default=3, min=1, soft_max=64,
-        description="Number of rigid links (bones) to fit")
-    mode: EnumProperty(name="Mode", items=MODE_ITEMS, default='GLOBAL',
-                       description="Global fit, or per-load-point pseudo-articulation")
-    motion: EnumProperty(name="Motion", items=MOTION_ITEMS, default='ROBUST',
-                         description="How each link's rigid motion is estimated")
-    p_max: FloatProperty(
-        name="Max Hardening", default=0.0, min=0.0, soft_max=20.0,
-        description="Strain hardening limit p_max (in units of the probe load, must be > 1); "
-                    "0 turns hardening off (linear response)")
-    load_index: IntProperty(
-        name="Load Index", default=0, min=0,
-        description="Pseudo mode: which load point's model becomes the rig")
-    auto_links: BoolProperty(
-        name="Auto Links", default=False,
-        description="Choose the number of links from the data (where the articulation error "
-                    "stops dropping), up to Max Links; turn off to set Links yourself")
-    max_links: IntProperty(name="Max Links", default=30, min=1, max=MAX_AUTO_LINKS, soft_max=64,
-                           description="Auto Links: the largest link count tried")
-    skin: EnumProperty(name="Skin", items=SKIN_ITEMS, default='AUTO',
-                       description="How the skin weights are made")
-    frames_per_field: IntProperty(
-        name="Frames per Field", default=10, min=1, soft_max=100,
-        description="Tracked scans: the replay action keys field p at frame "
-                    "(p+1) x this, the rest pose at frame 0. Green's scans: the load sweep "
-                    "takes 2 x this frames per load point and axis (0, probe load, 0)")
-    reduce: EnumProperty(name="Reduced Method", items=REDUCE_ITEMS, default='AUTO',
-                         description="Segment small patches of triangles instead of every "
-                                     "triangle (large scans)")
-    memory_budget: FloatProperty(name="Memory Budget", default=2.0, min=BUDGET_MIN,
-                                 soft_min=BUDGET_SOFT_MIN, soft_max=64.0, precision=2,
-                                 description=MEMORY_BUDGET_DESCRIPTION)
+class ARTDEF_PG_object(FitSettings, PropertyGroup):
+    """Fit settings (shown in the panel, defaults for the operators), what the last fit made, its
+    summary."""
 
     # ---- what the last fit created (used by Clear Rig / re-fit) ----
     rig: PointerProperty(type=bpy.types.Object, name="Rig",
@@ -142,8 +156,18 @@ class ARTDEF_PG_object(PropertyGroup):
     fit_summary: StringProperty(description="The core's summary of the fit")
     fit_articulation_percent: FloatProperty(
         name="Articulation error", precision=3, subtype='PERCENTAGE',
-        description="Articulation-only reconstruction error, 100 |X - X_art| / |X - mean X| "
-                    "over all fields (Karni-Gotsman style)")
+        description="Articulation-only reconstruction error, the Karni-Gotsman distortion "
+                    "100 |X - X_art| / |X - X_centroid| over all fields, X_centroid each frame's centroid")
+    fit_e_rms: FloatProperty(name="E_RMS", precision=6,
+                             description="|X - X_art| / sqrt(3 N F): RMS error per coordinate, scene units")
+    fit_rigid_percent: FloatProperty(name="One rigid motion", precision=3, subtype='PERCENTAGE',
+                                     description="Distortion left by one rigid motion per frame")
+    fit_linear_percent: FloatProperty(name="Linear model", precision=3, subtype='PERCENTAGE',
+                                      description="Distortion left by the fields' best rank-k linear model "
+                                                  "of about the rig's size")
+    fit_linear_rank: IntProperty(name="Linear rank")
+    fit_articulated: BoolProperty(default=True,
+                                  description="False when the data do not look articulated (see the notes)")
     fit_residual_max: FloatProperty(
         name="Residual colour scale", precision=6,
         description="Per-vertex articulation residual shown red in 'artdef_residual_color' "

@@ -5,7 +5,9 @@ import textwrap
 
 import bpy
 
+from ..artdef_addon.options import GB, FitOptions
 from ..operators import io, ops, rig, wording
+from ..operators.props import SETTING_NAMES
 
 
 def _subpanel(layout, idname, title):
@@ -65,42 +67,36 @@ class ARTDEF_PT_main(bpy.types.Panel):
         col = box.column()
         col.use_property_split = True
         col.use_property_decorate = False
-        if ops.HAS_AUTO_LINKS:
-            col.prop(st, "auto_links")
-        if st.auto_links and ops.HAS_AUTO_LINKS:
-            col.prop(st, "max_links")
-        else:
-            col.prop(st, "links")
+        col.prop(st, "auto_links")
+        col.prop(st, "max_links" if st.auto_links else "links")
         greens = io.has_scan(mesh) and io.scan_info(mesh)["kind"] == "greens"
-        if greens:  # Green's-only settings: only for Green's scans
-            col.prop(st, "mode")
-            if st.mode == 'PSEUDO':
+        # the fit options in their declared order (artdef_addon/options.py): Green's-only ones
+        # only for a Green's scan (or a pseudo mode already set), the advanced ones in a section
+        decl = FitOptions.declaration()
+        for name, (_, opt) in decl.items():
+            if name == "max_links" or opt.advanced:
+                continue
+            if opt.greens_only and not greens and not (name == "mode" and st.mode == 'PSEUDO'):
+                continue
+            col.prop(st, name)
+            if name == "mode" and st.mode == 'PSEUDO':
                 col.prop(st, "load_index")
-            col.prop(st, "p_max")
         adv = _subpanel(box, "ARTDEF_fit_advanced", "Advanced")
         if adv is not None:
             adv.use_property_split = True
             adv.use_property_decorate = False
-            adv.prop(st, "motion")
-            if ops.HAS_SKIN:
-                adv.prop(st, "skin")
+            for name, (_, opt) in decl.items():
+                if opt.advanced:
+                    adv.prop(st, name)
             if io.has_scan(mesh):
                 adv.prop(st, "frames_per_field")
-            adv.prop(st, "reduce")
-            adv.prop(st, "memory_budget")
         if io.has_scan(mesh):
             _draw_estimate(box, mesh, st)
         row = box.row(align=True)
         row.scale_y = 1.3
         op = row.operator("artdef.fit", icon='PLAY')
-        op.links, op.mode, op.motion = st.links, st.mode, st.motion
-        op.p_max, op.load_index = st.p_max, st.load_index
-        op.frames_per_field = st.frames_per_field
-        op.auto_links = st.auto_links and ops.HAS_AUTO_LINKS
-        op.max_links = st.max_links
-        if ops.HAS_SKIN:
-            op.skin = st.skin
-        op.reduce, op.memory_budget = st.reduce, st.memory_budget
+        for name in SETTING_NAMES:
+            setattr(op, name, getattr(st, name))
         row = box.row(align=True)
         row.operator("artdef.preview_links", icon='COLOR').links = st.links
         row.operator("artdef.clear_rig", icon='TRASH')
@@ -134,7 +130,15 @@ class ARTDEF_PT_main(bpy.types.Panel):
             if st.fit_p_max > 0:
                 col.label(text=f"Hardening p_max: {st.fit_p_max:g}")
             e = st.fit_articulation_percent
-            col.label(text=f"Articulation error: {e:.2f}%" if e >= 0 else "Articulation error: n/a (one field)")
+            col.label(text=f"Articulation error (Karni–Gotsman): {e:.3g}%" if e >= 0
+                      else "Articulation error (Karni–Gotsman): n/a")
+            if st.fit_e_rms == st.fit_e_rms:   # not NaN
+                col.label(text=f"E_RMS: {st.fit_e_rms:.4g}")
+            if st.fit_rigid_percent == st.fit_rigid_percent:
+                col.label(text=f"One rigid motion: {st.fit_rigid_percent:.3g}%, "
+                               f"rank-{st.fit_linear_rank} linear: {st.fit_linear_percent:.3g}%")
+            if not st.fit_articulated:
+                col.label(text="The data do not look articulated (see note)", icon='ERROR')
             col.label(text=f"RMS articulation: {st.fit_rms_articulation:.4g}")
             col.label(text=f"RMS total: {st.fit_rms_total:.4g}")
             if st.fit_diagonal > 0:
@@ -167,7 +171,7 @@ class ARTDEF_PT_main(bpy.types.Panel):
 
 
 def _gb(nbytes):
-    gb = nbytes / ops.GB
+    gb = nbytes / GB
     if gb < 0.095:
         return f"{gb:.2f}"
     if gb < 9.5:
@@ -200,7 +204,7 @@ def _draw_estimate(layout, mesh, st):
         col.label(text=f"reduced method on about {est.units:,} patches", icon='BLANK1')
     else:
         col.label(text=f"full method on {est.triangles:,} triangles", icon='BLANK1')
-    if est.memory_bytes > st.memory_budget * ops.GB:
+    if est.memory_bytes > st.memory_budget * GB:
         row = col.row()
         row.alert = True
         row.label(text="over the memory budget", icon='ERROR')

@@ -7,7 +7,7 @@
 Everything after ``--`` goes to ``artdef_addon.cli.main`` (same arguments as
 ``python -m artdef_addon``).  The repository root is put on ``sys.path`` so the
 checkout's ``artdef_addon`` is used; the operators come from the enabled
-extension if there is one, else from this checkout (see artdef_addon/headless.py).
+extension if there is one, else from this checkout (see operators/headless.py).
 """
 import os
 import sys

@@ -144,3 +144,21 @@ def clean_scene(installed_addon):
         _enable_addon(installed_addon)
     assert _addon_enabled(installed_addon)
     yield bpy.context.scene
+
+
+_TESTS = Path(__file__).resolve().parent
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark each test by its layer (markers registered in pytest.ini): ``core`` under tests/core
+    (the numerical core, no Blender, minutes at most) and tests/core_heavy (also ``heavy``: real
+    rigs and link-count sweeps), ``blender`` under tests/blender."""
+    for item in items:
+        parts = Path(str(item.path)).resolve().relative_to(_TESTS).parts
+        layer = parts[0] if parts else ""
+        if layer in ("core", "core_heavy"):
+            item.add_marker(pytest.mark.core)
+        if layer == "core_heavy":
+            item.add_marker(pytest.mark.heavy)
+        if layer == "blender":
+            item.add_marker(pytest.mark.blender)

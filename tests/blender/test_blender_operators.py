@@ -30,6 +30,7 @@ def pkg(installed_addon):
         samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
         model = importlib.import_module(installed_addon + ".artdef_addon.model")
         ops = importlib.import_module(installed_addon + ".operators.ops")
+        api = importlib.import_module(installed_addon + ".artdef_addon.api")
         io = importlib.import_module(installed_addon + ".operators.io")
         rig = importlib.import_module(installed_addon + ".operators.rig")
     return P
@@ -572,7 +573,7 @@ def test_preview_segments_in_a_worker_thread_and_cancels(clean_scene, pkg, sampl
     the worker gives the same links as the synchronous path, and Esc (a cancel) leaves no
     cached clustering and no colours behind."""
     obj = import_scan(sample_files["branching"])
-    pkg.ops._SEGMENTERS.clear()
+    pkg.api.clear_cache()
     job = pkg.ops._preview_job(obj, 11)
     assert not job.cached
     job.start_thread()
@@ -586,6 +587,7 @@ def test_preview_segments_in_a_worker_thread_and_cancels(clean_scene, pkg, sampl
         stages.append(stage)
         return True  # cancel at the first report
 
+    pkg.api.clear_cache()  # the first preview kept its clustering: cancel a fresh one
     pkg.ops.PROGRESS_HOOKS.append(hook)
     try:
         job = pkg.ops._preview_job(obj, 11)
@@ -594,15 +596,16 @@ def test_preview_segments_in_a_worker_thread_and_cancels(clean_scene, pkg, sampl
     finally:
         pkg.ops.PROGRESS_HOOKS.remove(hook)
     assert stages and isinstance(job.error, pkg.ops._fit.FitCancelled)
-    assert obj.name not in pkg.ops._SEGMENTERS
+    assert pkg.ops.cached_segmentation(obj) is None
     assert "artdef_links" not in obj.data.color_attributes
 
 
 def test_preview_links_colours_faces_from_cached_clustering(clean_scene, pkg, sample_files):
     obj = import_scan(sample_files["branching"])
-    pkg.ops._SEGMENTERS.clear()
+    pkg.api.clear_cache()
     assert bpy.ops.artdef.preview_links(links=11) == {'FINISHED'}
-    seg = pkg.ops._SEGMENTERS[obj.name][1]
+    seg = pkg.ops.cached_segmentation(obj)
+    assert seg is not None
     attr = obj.data.color_attributes["artdef_links"]
     assert attr.domain == 'CORNER' and attr.data_type == 'BYTE_COLOR'
     assert obj.data.color_attributes.active_color.name == "artdef_links"
@@ -616,10 +619,10 @@ def test_preview_links_colours_faces_from_cached_clustering(clean_scene, pkg, sa
     assert bpy.ops.artdef.preview_links(links=5) == {'FINISHED'}
     attr = obj.data.color_attributes["artdef_links"]
     assert n_colours() == 5
-    assert pkg.ops._SEGMENTERS[obj.name][1] is seg  # distances not recomputed
+    assert pkg.ops.cached_segmentation(obj) is seg  # distances not recomputed
     # the fit reuses the cached clustering too, and colours by its links
     assert bpy.ops.artdef.fit(links=11) == {'FINISHED'}
-    assert pkg.ops._SEGMENTERS[obj.name][1] is seg
+    assert pkg.ops.cached_segmentation(obj) is seg
     attr = obj.data.color_attributes["artdef_links"]
     assert n_colours() == 11
 
@@ -659,18 +662,19 @@ def test_fit_job_runs_in_a_thread_and_cancels(pkg, sample_files):
     """The worker-thread job behind the interactive (modal, Esc) path."""
     fit_mod = importlib.import_module(pkg.scan.__name__.rsplit(".", 1)[0] + ".fit")
     scan = pkg.scan.load_scan(sample_files["branching"])
-    job = pkg.ops._FitJob(scan, 11, "global", "robust", None)
+    job = pkg.ops._FitJob(scan, 11)
     job.cancel.set()  # Esc before the first progress report
     job.start_thread()
     job.thread.join(60)
     assert not job.thread.is_alive()
     assert isinstance(job.error, fit_mod.FitCancelled) and job.result is None
-    job = pkg.ops._FitJob(pkg.scan.load_scan(sample_files["rod"]), 3, "global", "robust", None)
+    job = pkg.ops._FitJob(pkg.scan.load_scan(sample_files["rod"]), 3)
     job.start_thread()
     job.thread.join(60)
     assert job.error is None and job.result.n_links == 3
     assert job.stage == "done" and job.fraction == 1.0
-    assert job.segmenter is not None and job.segmenter.progress is None
+    seg = pkg.api.cached(job.scan)
+    assert seg is not None and seg.progress is None  # the kept segmentation holds no callback
 
 
 class _Layout:
@@ -776,6 +780,9 @@ def test_fit_stores_residual_and_link_quality(clean_scene, pkg, sample_files, tm
     # per-link and overall figures, as stored properties
     st = obj.artdef
     assert st.fit_articulation_percent == pytest.approx(result.articulation_error_percent, rel=1e-6)
+    assert st.fit_e_rms == pytest.approx(result.e_rms, rel=1e-5)            # issue 19's figures
+    assert st.fit_rigid_percent == pytest.approx(result.rigid_error_percent, rel=1e-5)
+    assert st.fit_articulated and result.articulated
     assert st.fit_residual_max == pytest.approx(float(stored.max()), rel=1e-5)
     assert len(st.fit_link_stats) == 3
     rigid = np.sqrt(np.mean(result.link_residuals ** 2, axis=0))
@@ -791,7 +798,8 @@ def test_fit_stores_residual_and_link_quality(clean_scene, pkg, sample_files, tm
     # the panel shows them
     st.show_link_stats = True
     labels = [e[1] for e in draw_panel() if e[0] == "label"]
-    assert any(l.startswith("Articulation error:") and l.endswith("%") for l in labels)
+    assert any(l.startswith("Articulation error (Karni–Gotsman):") and l.endswith("%") for l in labels)
+    assert any(l.startswith("E_RMS: ") for l in labels) and any(l.startswith("One rigid motion: ") for l in labels)
     assert any(l.startswith("Vertex residual: mean") for l in labels)
     assert sum(l.startswith(("00 ", "01 ", "02 ")) for l in labels) == 3
     assert any(l.startswith("Replay: field p at frame (p+1)x10") for l in labels)
@@ -1402,9 +1410,35 @@ def test_new_sources_undo(clean_scene, tube_poses, tmp_path):
 # core options: automatic link count, skin weights
 # --------------------------------------------------------------------------
 
+def test_fit_properties_are_the_cores_declaration(pkg):
+    """The Fit operator's and the object's settings are made from FitOptions (one declaration):
+    same defaults, choices (upper-cased ids), bounds and descriptions; the panel's Fit button
+    copies every one of them."""
+    options = importlib.import_module(pkg.scan.__name__.rsplit(".", 1)[0] + ".options")
+    decl = options.FitOptions.declaration()
+    for rna in (bpy.ops.artdef.fit.get_rna_type(), bpy.types.Object.bl_rna.properties["artdef"].fixed_type):
+        props = rna.properties
+        for name, (default, opt) in decl.items():
+            p = props[name]
+            assert p.name == opt.label and p.description.startswith(opt.description), name
+            if opt.choices:
+                assert [i.identifier for i in p.enum_items] == [v.upper() for v in opt.values]
+                assert [i.description for i in p.enum_items] == [c.description for c in opt.choices]
+                assert p.default == default.upper()
+            else:
+                assert p.default == pytest.approx(0 if default is None else default, rel=1e-6), name
+                assert p.hard_min == pytest.approx(0 if opt.optional else opt.min, rel=1e-6), name
+    st = bpy.types.Object.bl_rna.properties["artdef"].fixed_type.properties
+    for name in pkg.ops.SETTING_NAMES:
+        assert name in bpy.ops.artdef.fit.get_rna_type().properties and name in st
+    # a value the declaration refuses is reported with the setting's label, nothing is made
+    assert pkg.ops.options_from(type("S", (), dict(
+        mode='GLOBAL', motion='LSQ', p_max=0.0, max_links=4, memory_budget=1.0, reduce='ON',
+        strategy='PAPER', skin='SEAM'))()) == options.FitOptions(
+        motion="lsq", max_links=4, memory_budget=1.0, reduce="on", strategy="paper", skin="seam")
+
+
 def test_fit_skin_option(clean_scene, pkg, sample_files):
-    if not pkg.ops.HAS_SKIN:
-        pytest.skip("this core has no skin option")
     ref = pkg.scan.load_scan(sample_files["rod"])
     obj = import_scan(sample_files["rod"])
     props = bpy.ops.artdef.fit.get_rna_type().properties
@@ -1422,8 +1456,6 @@ def test_fit_skin_option(clean_scene, pkg, sample_files):
 
 
 def test_fit_auto_links(clean_scene, pkg, sample_files):
-    if not pkg.ops.HAS_AUTO_LINKS:
-        pytest.skip("this core cannot choose the link count")
     obj = import_scan(sample_files["rod"])
     assert bpy.ops.artdef.fit(auto_links=True, max_links=6) == {'FINISHED'}
     st = obj.artdef
@@ -1466,7 +1498,7 @@ def test_memory_budget_switches_to_reduced_method_and_says_so(clean_scene, pkg, 
     # the default budget: the full method, no note
     assert bpy.ops.artdef.fit(links=11) == {'FINISHED'}
     assert pkg.ops.last_result(obj).notes == [] and st.fit_notes == "" and not st.fit_reduced
-    full_seg = pkg.ops._SEGMENTERS[obj.name][1]
+    full_seg = pkg.ops.cached_segmentation(obj)
     assert not full_seg.reduced
     capfd.readouterr()
     # a tiny budget: the fit switches to the reduced method, says why, still makes 11 bones
@@ -1478,17 +1510,17 @@ def test_memory_budget_switches_to_reduced_method_and_says_so(clean_scene, pkg, 
     assert st.memory_budget == pytest.approx(0.001) and st.reduce == 'AUTO'
     out = capfd.readouterr()
     assert "reduced method" in out.out + out.err  # the operator's INFO reports
-    seg = pkg.ops._SEGMENTERS[obj.name][1]
+    seg = pkg.ops.cached_segmentation(obj)
     assert seg is not full_seg and seg.reduced  # the cache follows the settings
     labels = [e[1] for e in draw_panel() if e[0] == "label"]
     assert any("reduced method" in l for l in labels)                      # the fit's notes
     assert any(l.startswith("reduced method on about ") for l in labels)   # the estimate
     # Preview Links uses the object's settings: the cached reduced segmenter
     assert bpy.ops.artdef.preview_links(links=11) == {'FINISHED'}
-    assert pkg.ops._SEGMENTERS[obj.name][1] is seg
+    assert pkg.ops.cached_segmentation(obj) is seg
     # Reduced Method Off ignores the budget; back on the default budget: no note
     assert bpy.ops.artdef.fit(links=11, reduce='OFF') == {'FINISHED'}
-    assert pkg.ops.last_result(obj).notes == [] and not pkg.ops._SEGMENTERS[obj.name][1].reduced
+    assert pkg.ops.last_result(obj).notes == [] and not pkg.ops.cached_segmentation(obj).reduced
     assert bpy.ops.artdef.fit(links=11, reduce='AUTO', memory_budget=2.0) == {'FINISHED'}
     assert pkg.ops.last_result(obj).notes == [] and st.fit_notes == "" and not st.fit_reduced
     assert not any("reduced method" in e[1] for e in draw_panel() if e[0] == "label")
@@ -1518,7 +1550,7 @@ def test_fit_progress_reads_as_words(pkg):
     assert text("merge column 3", 0.5) == "merging pieces into links (load point 3) 50%"
     assert text("joints", 0.0) == "joints, bones and skin weights"   # reported once: no 0%
     assert text("done", 1.0) == "finishing" and text("start", 0.0) == "starting"
-    job = pkg.ops._FitJob(None, 3, "global", "robust", None, max_links=8)
+    job = pkg.ops._FitJob(None, "auto")
     job.progress("links", 0.5)
     job.progress("merge", 0.2)
     assert job.status_text() == "choosing the link count 50% (merging pieces into links 20%)"

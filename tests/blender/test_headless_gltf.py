@@ -255,7 +255,7 @@ def test_greens_blend_keeps_live_drivers(greens_glb):
 
 _KEYED_EXPORT = """
 import sys, bpy
-from artdef_addon import headless
+from artdef_addon.cli import blender_layer; headless = blender_layer()
 bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
 scene = bpy.context.scene
 arm = [o for o in bpy.data.objects if o.type == 'ARMATURE'][0]
@@ -302,24 +302,36 @@ def test_greens_export_keeps_animator_keys_and_the_load_sweep(greens_glb, tmp_pa
     assert np.all(angle > 0.1), angle.min()
 
 
-def test_build_outputs_rejects_unknown_fit_options(rod_scan, tmp_path):
-    glb = tmp_path / "x.glb"
-    code = ("import sys\n"
-            "from artdef_addon import headless\n"
-            "try:\n"
-            f"    headless.build_outputs({str(rod_scan)!r}, {{'links': 3, 'bogus': 1, 'skin': None}},"
-            f" None, {str(glb)!r}, None)\n"
-            "except RuntimeError as ex:\n"
-            "    print(ex)\n"
-            "    print(sorted(headless.fit_option_names()))\n"
-            "    raise SystemExit(3)\n")
-    proc = _run(["-c", code], cwd=tmp_path)
-    assert proc.returncode == 3, proc.stderr[-3000:]
-    message, names = proc.stdout.strip().splitlines()[-2:]
-    assert "'bogus'" in message and "skin" in message, message
-    for name in ("links", "skin", "reduce", "memory_budget", "frames_per_field"):
-        assert f"'{name}'" in names, names
-    assert not glb.exists()
+_GROUP_WEIGHTS = """
+import sys, bpy, numpy as np
+bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
+mesh = [o for o in bpy.data.objects if o.type == 'MESH'][0]
+names = [g.name for g in mesh.vertex_groups]
+w = np.zeros((len(mesh.data.vertices), len(names)))
+for v in mesh.data.vertices:
+    for g in v.groups:
+        w[v.index, g.group] = g.weight
+np.savez(sys.argv[2], weights=w, names=np.array(names))
+"""
+
+
+def test_blend_holds_the_fit_of_the_npz_with_every_option(rod_scan, tmp_path):
+    """One fit per command: ``fit -o R --blend B`` builds the .blend's rig from the result it
+    saved (every option allowed, ``--strategy`` too), so the vertex groups hold the .npz's skin
+    weights (to the float32 Blender stores)."""
+    npz, blend = tmp_path / "r.npz", tmp_path / "r.blend"
+    _ok(_run(["-m", "artdef_addon", "fit", str(rod_scan), "--links", str(LINKS), "--strategy", "paper",
+              "--skin", "seam", "-o", str(npz), "--blend", str(blend)], cwd=tmp_path))
+    _ok(_run(["-c", _GROUP_WEIGHTS, str(blend), str(tmp_path / "w.npz")], cwd=tmp_path))
+    with np.load(npz) as r, np.load(tmp_path / "w.npz") as b:
+        weights, groups = r["weights"], b["weights"]
+        assert str(r["skin"]) == "seam"
+    assert weights.shape[1] == LINKS and np.ptp(weights) > 0.5
+    # the bones and groups are renamed (root-first): match each link's column to its group
+    diff = np.abs(weights[:, :, None] - groups[:, None, :]).max(axis=0)      # (links, groups)
+    match = diff.argmin(axis=1)
+    assert len(set(match.tolist())) == LINKS
+    np.testing.assert_allclose(groups[:, match], weights, atol=1e-6)
 
 
 def test_artdef_fit_script_runs_with_the_bpy_module(rod_scan, tmp_path):
@@ -331,14 +343,14 @@ def test_artdef_fit_script_runs_with_the_bpy_module(rod_scan, tmp_path):
 
 def test_build_outputs_without_bpy_says_how_to_get_it(tmp_path):
     code = ("import sys; sys.modules['bpy'] = None\n"
-            "from artdef_addon import headless\n"
+            "from artdef_addon.cli import blender_layer; headless = blender_layer()\n"
             "try:\n"
             "    headless.require_bpy()\n"
             "    raise SystemExit('require_bpy() did not raise')\n"
             "except RuntimeError as ex:\n"
             "    assert 'need Blender' in str(ex)\n"
             "try:\n"
-            "    headless.build_outputs('x.npz', {}, None, 'x.glb', None)\n"
+            "    headless.build_outputs('x.npz', None, None, None, 'x.glb', None)\n"
             "except RuntimeError as ex:\n"
             "    print(ex)\n"
             "    raise SystemExit(3)\n")

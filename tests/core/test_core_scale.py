@@ -85,7 +85,7 @@ def test_reduced_method_counts_triangles_not_patches():
     the links come out right (counting patches instead gave ARI 0.90 on this scan)."""
     import sys
     import os
-    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
     from generate import branching_scan
     scan, truth = branching_scan(4000, n_fields=12, seed=7)
     seg = F.Segmenter(scan, reduce=True, max_units=60)

@@ -20,7 +20,7 @@ import pytest
 
 from artdef_addon import cli, files, fit as F, samples, scan as S
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def digest(path):
@@ -419,16 +419,19 @@ def test_unusual_meshes_fit_on_the_command_line(rod, tmp_path, capsys):
 
 
 def test_single_field_error_is_not_available_not_zero(rod, tmp_path, capsys):
+    """One field: the Karni–Gotsman distortion (about each frame's centroid, issue 19) is defined and
+    reported; the old per-vertex-mean figure divides by zero and is NaN, never 0."""
     p = tmp_path / "one.npz"
     S.save_scan(p, S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[1:2]))
     code, out, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / "r.npz")
     assert code == 0 and err == []
-    assert "(n/a (one field))" in out and "0.00%" not in out
     r = F.load_result(tmp_path / "r.npz")
-    assert np.isnan(r.articulation_error_percent) and "n/a (one field)" in r.summary()
-    # a two-field fit still reports its percentage
+    assert np.isfinite(r.articulation_error_percent) and f"{r.articulation_error_percent:.3g}% Karni" in out
+    assert np.isnan(r.vertex_mean_error_percent)
+    # a two-field fit reports both
     r2 = F.fit(S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[:2]), 3)
-    assert np.isfinite(r2.articulation_error_percent) and f"{r2.articulation_error_percent:.2f}%" in r2.summary()
+    assert np.isfinite(r2.articulation_error_percent) and f"{r2.articulation_error_percent:.3g}%" in r2.summary()
+    assert np.isfinite(r2.vertex_mean_error_percent)
     # --links auto on one field stays bounded (the undefined error counts as nothing to explain)
     code, out, err = run(capsys, "fit", p, "--links", "auto", "--max-links", "8", "-q")
     assert code == 0 and err == []

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from artdef_addon import fit as F, linkcount, quality, samples, scan as S, skinning
+from artdef_addon import fit as F, joints, linkcount, quality, samples, scan as S, skinning
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).parent.parent / "data"
 
 
 def test_simplex_least_squares_is_exact():
@@ -280,7 +280,7 @@ def test_link_swaps_repair_a_merged_pair_and_a_split_link(monkeypatch):
     cen = x0[faces[tip]].mean(axis=1)
     along = cen @ (cen.mean(0) / np.linalg.norm(cen.mean(0)))
     lab[tip[along > np.median(along)]] = 2
-    R, t = F._lsq_motions(x0, fields, faces, lab, 11)
+    R, t = joints.lsq_motions(x0, fields, faces, lab, 11)
     new, swaps = merge.dominant_labels(x0, fields, faces, lab, R, t)
     assert swaps >= 1
     assert quality.adjusted_rand_index(new, gl) > 0.99

@@ -1,14 +1,17 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Headless glue for ``python -m artdef_addon fit ... --blend/--glb/--png``.
+"""Headless Blender outputs for ``python -m artdef_addon fit ... --blend/--glb/--png``.
 
-The command line builds the rig through the *same operators as the UI*
-(``bpy.ops.artdef.import_scan`` then ``bpy.ops.artdef.fit``) in a fresh scene,
-then writes any of: the .blend, a glTF binary made by Blender's own exporter
-(skinned mesh, morph targets, animation) and a Workbench render.
+The command line fits once (the core's ``artdef_addon.fit``) and hands the result here: a fresh
+scene gets the scan's mesh and the rig built from that result by ``ops.apply_result`` (what the
+Fit operator does after its job), then any of the .blend, a glTF binary made by Blender's own
+exporter (skinned mesh, morph targets, animation) and a Workbench render are written.
 
-Works with the ``bpy`` module (``pip install bpy``) and inside Blender
-(``blender -b -P scripts/artdef_fit.py -- fit ...``).  ``bpy`` is imported
-only inside the functions, so the rest of ``artdef_addon`` stays bpy-free.
+This module belongs to the Blender layer. The core's command line loads it by its place in the
+extension only when Blender outputs are asked for (see ``artdef_addon.cli._blender_layer``), so
+it must also work loaded on its own from its file: no relative imports; the registered
+extension's modules are reached through :func:`ensure_registered`'s package name. Works with the
+``bpy`` module (``pip install bpy``) and inside Blender (``blender -b -P scripts/artdef_fit.py --
+fit ...``).
 """
 from __future__ import annotations
 
@@ -50,45 +53,6 @@ def require_bpy() -> None:
         return
     if loaded is None or importlib.util.find_spec("bpy") is None:
         raise RuntimeError(NEED_BPY)
-
-
-#: Animated files Blender imports (fitted through ``artdef.fields_from_file``).
-ANIMATED_EXTENSIONS = (".glb", ".gltf", ".fbx", ".abc", ".usd", ".usdc", ".usda", ".usdz")
-SEQUENCE_EXTENSIONS = (".obj", ".ply")
-
-
-def input_kind(path: str) -> str | None:
-    """'npz' (a scan), 'animated' (a file Blender imports), 'sequence' (an OBJ/PLY
-    sequence: a folder, a pattern or one numbered file), or None."""
-    if os.path.isdir(path) or any(c in os.path.basename(path) for c in "*?["):
-        return "sequence"
-    ext = os.path.splitext(path)[1].lower()
-    if ext == ".npz":
-        return "npz"
-    if ext in ANIMATED_EXTENSIONS:
-        return "animated"
-    if ext in SEQUENCE_EXTENSIONS:
-        return "sequence"
-    return None
-
-
-def parse_frames(text: str | None):
-    """``START:END[:STEP]`` -> (start, end, step); None for None.  ValueError
-    with one line saying what is wrong."""
-    if text is None:
-        return None
-    parts = text.split(":")
-    try:
-        if len(parts) not in (2, 3):
-            raise ValueError
-        start, end = int(parts[0]), int(parts[1])
-        step = int(parts[2]) if len(parts) == 3 else 1
-    except ValueError:
-        raise ValueError(f"--frames must be START:END or START:END:STEP (whole numbers), "
-                         f"got {text!r}") from None
-    if end < start or step < 1:
-        raise ValueError(f"--frames {text}: END must not be before START and STEP must be >= 1")
-    return start, end, step
 
 
 # --------------------------------------------------------------------------
@@ -485,26 +449,6 @@ def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
 # Entry point used by artdef_addon.cli
 # --------------------------------------------------------------------------
 
-def fit_option_names() -> list[str]:
-    """The keyword arguments ``bpy.ops.artdef.fit`` accepts (its RNA properties)."""
-    bpy = _bpy()
-    props = bpy.ops.artdef.fit.get_rna_type().properties
-    return [p.identifier for p in props if p.identifier != "rna_type"]
-
-
-def fit_options(fit_kwargs: dict) -> dict:
-    """``fit_kwargs`` without the ``None`` values (the operator's defaults then
-    apply); RuntimeError naming the unknown keys and the accepted ones if a key
-    is not a property of ``bpy.ops.artdef.fit``."""
-    names = fit_option_names()
-    kwargs = {k: v for k, v in dict(fit_kwargs or {}).items() if v is not None}
-    unknown = sorted(k for k in kwargs if k not in names)
-    if unknown:
-        raise RuntimeError(f"artdef.fit has no option {', '.join(map(repr, unknown))} "
-                           f"(it accepts: {', '.join(sorted(names))})")
-    return kwargs
-
-
 def scan_from_file(path: str, frames=None, clips=()):
     """See :func:`_scan_from_file`; Ctrl-C is a flag here too (:class:`_Interrupts`), raised as
     KeyboardInterrupt once Blender's import and sampling have returned."""
@@ -555,66 +499,49 @@ def _scan_from_file(path: str, frames=None, clips=()):
     return mesh, io.read_scan(mesh).scan
 
 
-def build_outputs(scan_path: str, fit_kwargs: dict, blend: str | None,
-                  glb: str | None, png: str | None, fbx: str | None = None,
-                  mesh=None, rotation_only: bool = False) -> dict:
-    """Fit ``scan_path`` with ``bpy.ops.artdef.fit(**fit_kwargs)`` in a fresh
-    scene and write the requested outputs; return ``{"blend"|"glb"|"png": path}``
-    for those written.  ``fit_kwargs`` keys are the operator's property names
-    (``links``, ``mode``, ``motion``, ``p_max``, ``load_index``,
-    ``frames_per_field``, ``auto_links``, ``max_links``, ``skin``, ``reduce``,
-    ``memory_budget``); ``None`` values are left out, an unknown key is a
-    RuntimeError raised before any work.
+def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | None,
+                  png: str | None, *, fbx: str | None = None, mesh=None, rotation_only: bool = False,
+                  load_index: int = 0, frames_per_field: int = 10) -> dict:
+    """Build the rig of ``result`` — the fit the command line already made of ``scan`` (read from
+    ``scan_path``) — with :func:`operators.ops.apply_result`, the function the Fit operator calls
+    after its job, and write the requested outputs. ``mesh``: the object holding the scan when it
+    was sampled from an animated file (:func:`scan_from_file`); else a fresh scene gets the scan
+    file's mesh. Nothing is fitted here: the .npz, the .blend and the exports hold the same
+    numbers. Returns ``{"blend"|"glb"|"fbx"|"png": path}`` for those written (and
+    ``"rotation_only_error"``: (max, rms) % of the diagonal, with ``rotation_only``).
 
     Ctrl-C (SIGINT) is caught as a flag for the whole Blender stage and raised as
     KeyboardInterrupt between its steps (see :class:`_Interrupts`); the caller writes to
     temporary paths and removes them then (``files.Outputs``)."""
     with _Interrupts() as intr:
-        return _build_outputs(intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only)
+        return _build_outputs(intr, scan_path, scan, result, blend, glb, png, fbx, mesh, rotation_only,
+                              load_index, frames_per_field)
 
 
-def _build_outputs(intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only):
+def _build_outputs(intr, scan_path, scan, result, blend, glb, png, fbx, mesh, rotation_only,
+                   load_index, frames_per_field):
     bpy = _bpy()
-    intr.check()
-    scan_path = os.path.abspath(scan_path)
+    import importlib  # noqa: PLC0415
 
+    intr.check()
     if mesh is None:  # a scan file: a fresh scene
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
         intr.check()
     module_name = ensure_registered()
     intr.check()
-    fit_kwargs = fit_options(fit_kwargs)
-    ops = sys.modules.get(module_name + ".operators.ops")
-    hooks = getattr(ops, "PROGRESS_HOOKS", None)
-    if hooks is not None:
-        hooks.append(intr.hook)
-    try:
-        return _build_steps(bpy, intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only)
-    finally:
-        if hooks is not None and intr.hook in hooks:
-            hooks.remove(intr.hook)
-
-
-
-def _build_steps(bpy, intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, rotation_only):
+    ops = importlib.import_module(module_name + ".operators.ops")
+    io = importlib.import_module(module_name + ".operators.io")
     if mesh is None:
-        result = bpy.ops.artdef.import_scan(filepath=scan_path)
+        mesh, _ = io.import_scan_file(bpy.context, os.path.abspath(scan_path))
         intr.check()
-        if 'FINISHED' not in result:
-            raise RuntimeError(f"artdef.import_scan({scan_path!r}) returned {set(result)}")
-        mesh = bpy.context.view_layer.objects.active
-        if mesh is None or mesh.type != 'MESH':
-            raise RuntimeError("artdef.import_scan did not leave the imported mesh active")
-
+    stored = io.read_scan(mesh)
     with bpy.context.temp_override(active_object=mesh, object=mesh,
                                    selected_objects=[mesh], selected_editable_objects=[mesh]):
-        try:
-            result = bpy.ops.artdef.fit(**fit_kwargs)
-        except TypeError as ex:  # a value of the wrong type or not in an enum
-            raise RuntimeError(f"artdef.fit: {ex}") from ex
-    intr.check()                 # a cancelled fit (Ctrl-C) returns CANCELLED
-    if 'FINISHED' not in result:
-        raise RuntimeError(f"artdef.fit({fit_kwargs}) returned {set(result)}")
+        ops.apply_result(bpy.context, mesh, result, scan, stored.tri_polygons, load_index=load_index,
+                         frames_per_field=frames_per_field,
+                         auto_links=bool(getattr(result, "link_reason", "")),
+                         seconds=float(result.timings.get("total", 0.0)))
+    intr.check()
     armature = _find_armature(mesh)
     if armature is not None:  # bones an animator can read: source joint names, else root-first
         with bpy.context.temp_override(active_object=mesh, object=mesh, selected_objects=[mesh]):
@@ -643,5 +570,6 @@ def _build_steps(bpy, intr, scan_path, fit_kwargs, blend, glb, png, fbx, mesh, r
     return written
 
 
-__all__ = ["build_outputs", "scan_from_file", "input_kind", "parse_frames", "export_rig", "fit_options", "fit_option_names", "require_bpy", "ensure_registered",
+__all__ = ["build_outputs", "scan_from_file", "export_rig", "require_bpy",
+           "ensure_registered",
            "save_blend", "export_glb", "render_png", "NEED_BPY"]

@@ -1,0 +1,199 @@
+"""Fit options: every setting of a fit, declared once.
+
+:class:`FitOptions` is a frozen dataclass. Each field's ``metadata`` (an :class:`Option`) carries
+what every front end needs — label, description, type, default, the allowed values with their own
+descriptions, unit, bounds, and whether the setting only matters for Green's scans or is an
+advanced one. The command line (:mod:`artdef_addon.cli`) builds its ``argparse`` arguments from
+it, the Blender layer (``operators/props.py``) its ``bpy.props`` properties, the panel its rows:
+no front end repeats a default, a choice or a description.
+
+Spelling: one canonical, lower-case value per choice (``"global"``, ``"refined"`` …); Blender's
+enum identifiers are those values upper-cased (a mechanical rule of the Blender layer, not a
+second spelling). ``p_max`` is ``None`` when hardening is off (the Blender property shows that as
+0). ``memory_budget`` is in GB (2³⁰ bytes); :attr:`FitOptions.budget_bytes` gives bytes.
+
+Values are checked once, when the options are made (``OptionsError``: one line naming the setting).
+The "auto" rules (strategy, skin) live here too, in :meth:`FitOptions.resolved`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from .files import MAX_AUTO_LINKS
+from .scan import ScanError
+
+GB = 2 ** 30
+
+
+class OptionsError(ScanError):
+    """A fit setting out of range or not one of its choices: bad input like a bad scan (every
+    front end reports a :class:`ScanError` in one line), the message names it, ``option`` is the
+    field's name (a front end may show its label instead)."""
+
+    def __init__(self, message: str, option: str | None = None):
+        super().__init__(message)
+        self.option = option
+
+
+@dataclasses.dataclass(frozen=True)
+class Choice:
+    value: str
+    label: str
+    description: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Option:
+    """What a front end needs to show and check one fit setting."""
+    label: str
+    description: str
+    type: type
+    choices: tuple = ()              # of Choice; empty for numbers
+    unit: str = ""
+    min: float | None = None         # inclusive bound
+    min_exclusive: bool = False      # the bound itself is not allowed (p_max > 1)
+    soft_min: float | None = None    # where the Blender slider starts
+    soft_max: float | None = None
+    max: float | None = None
+    optional: bool = False           # None allowed ("off")
+    greens_only: bool = False        # only matters for Green's-matrix scans
+    advanced: bool = False           # for experts and comparisons; the defaults are the product
+
+    @property
+    def values(self) -> tuple:
+        return tuple(c.value for c in self.choices)
+
+
+def _field(default, **meta):
+    return dataclasses.field(default=default, metadata={"option": Option(**meta)})
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """Every setting of a fit except the link count (paper §5–§7; METHOD §2–§10)."""
+    mode: str = _field(
+        "global", label="Mode", type=str,
+        description="One articulated model for all fields, or one per load point of a Green's scan",
+        choices=(Choice("global", "Global", "One articulated model for all fields (the main path)"),
+                 Choice("pseudo", "Pseudo", "Fit each load point separately (pseudo-articulation, "
+                                            "paper §7.2); the rig is built from one load point's "
+                                            "model")),
+        greens_only=True)
+    motion: str = _field(
+        "robust", label="Motion", type=str,
+        description="How each link's rigid motion is estimated",
+        choices=(Choice("robust", "Robust", "Each link moves with its motion centroid: the member "
+                                            "triangle whose motion agrees exactly with at least "
+                                            "half of the link (paper §6; stays correct with up to "
+                                            "50% outlying triangles)"),
+                 Choice("lsq", "Least Squares", "Least-squares rigid motion fitted to all the "
+                                                "link's triangles (for comparison)")),
+        advanced=True)
+    p_max: float | None = _field(
+        None, label="Max Hardening", type=float, unit="probe loads", min=1.0, min_exclusive=True,
+        soft_max=20.0, optional=True, greens_only=True,
+        description="Strain hardening limit p_max in units of the probe load (> 1, paper §7.1); "
+                    "off by default (linear response)")
+    max_links: int = _field(
+        30, label="Max Links", type=int, min=1, max=MAX_AUTO_LINKS, soft_max=64,
+        description="Links auto: the largest link count tried")
+    memory_budget: float = _field(
+        2.0, label="Memory Budget", type=float, unit="GB", min=0.001, soft_min=0.1, soft_max=64.0,
+        advanced=True,
+        description="Most memory the fit may use, in GB (2^30 bytes). With Reduced Method 'auto' a "
+                    "scan whose full method would need more switches to the reduced method on "
+                    "patches instead of running out of memory; it also sets how many patches the "
+                    "reduced method uses")
+    reduce: str = _field(
+        "auto", label="Reduced Method", type=str,
+        description="Segment small patches of triangles instead of every triangle (large scans)",
+        choices=(Choice("auto", "Auto", "Use the reduced method on patches only when the full "
+                                        "method would need more memory than the Memory Budget "
+                                        "(the fit then says so)"),
+                 Choice("on", "On", "Always use the reduced method: the method on small patches of "
+                                    "triangles whose motions agree, seams refined per triangle "
+                                    "(fast, bounded memory)"),
+                 Choice("off", "Off", "Always use the paper's full method over all triangle pairs "
+                                      "(memory grows with the square of the triangle count)")),
+        advanced=True)
+    strategy: str = _field(
+        "auto", label="Strategy", type=str,
+        description="How the fields are combined into links",
+        choices=(Choice("auto", "Auto", "Paper for Green's scans, summed for tracked scans"),
+                 Choice("summed", "Summed", "One clustering tree over the fields' summed distances "
+                                            "(bounded memory; better on smoothly skinned "
+                                            "characters)"),
+                 Choice("paper", "Paper", "The paper's per-field trees with split and merge "
+                                          "(§5.2; two levels for Green's scans)")),
+        advanced=True)
+    skin: str = _field(
+        "auto", label="Skin", type=str,
+        description="How the skin weights are made",
+        choices=(Choice("auto", "Auto", "Refined for tracked scans, seam-blended for Green's scans"),
+                 Choice("seam", "Seam", "Weights blended across the seams between links (paper)"),
+                 Choice("refined", "Refined", "Per-vertex convex weights (at most 4 nearby links) "
+                                              "solved by least squares over all fields: reproduces "
+                                              "the capture closely with few bones")),
+        advanced=True)
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            opt = f.metadata["option"]
+            v = getattr(self, f.name)
+            if v is None and opt.optional:
+                continue
+            if opt.choices:
+                if not isinstance(v, str) or v not in opt.values:
+                    raise OptionsError(f"{f.name} must be one of {', '.join(opt.values)}; got {v!r}", f.name)
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise OptionsError(f"{f.name} must be a number; got {v!r}", f.name)
+            if opt.type is int and int(v) != v:
+                raise OptionsError(f"{f.name} must be a whole number; got {v!r}", f.name)
+            if not math.isfinite(v):
+                raise OptionsError(f"{f.name} must be finite; got {v!r}", f.name)
+            low_ok = opt.min is None or (v > opt.min if opt.min_exclusive else v >= opt.min)
+            if not low_ok:
+                rel = "a number greater than" if opt.min_exclusive else "at least"
+                raise OptionsError(f"{f.name} must be {rel} {opt.min:g}"
+                                   + (" (or off)" if opt.optional else "") + f"; got {v!r}", f.name)
+            if opt.max is not None and v > opt.max:
+                raise OptionsError(f"{f.name} must be at most {opt.max:g}; got {v!r}", f.name)
+            object.__setattr__(self, f.name, opt.type(v))
+
+    # ------------------------------------------------------------------ reading
+    @classmethod
+    def declaration(cls) -> dict:
+        """``{name: (default, Option)}`` in declaration order, for the front ends."""
+        return {f.name: (f.default, f.metadata["option"]) for f in dataclasses.fields(cls)}
+
+    @property
+    def budget_bytes(self) -> float:
+        return float(self.memory_budget) * GB
+
+    @property
+    def reduce_arg(self) -> bool | None:
+        """The segmenter's switch: None (decide by the budget), True, False."""
+        return {"auto": None, "on": True, "off": False}[self.reduce]
+
+    def replace(self, **changes) -> "FitOptions":
+        return dataclasses.replace(self, **changes)
+
+    def resolved(self, kind: str) -> "FitOptions":
+        """The "auto" rules for a scan of ``kind`` (``"greens"`` or ``"tracked"``): strategy paper
+        for Green's scans, summed for tracked ones; skin seam for Green's scans, refined for
+        tracked ones. ``reduce`` stays: it depends on the scan's size, not only its kind."""
+        greens = kind == "greens"
+        return self.replace(
+            strategy=("paper" if greens else "summed") if self.strategy == "auto" else self.strategy,
+            skin=("seam" if greens else "refined") if self.skin == "auto" else self.skin)
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def describe(name: str) -> str:
+    """The one-line description of option ``name`` (with its unit), for help texts."""
+    opt = FitOptions.declaration()[name][1]
+    return opt.description
