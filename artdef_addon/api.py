@@ -26,7 +26,8 @@ from . import cost as _cost
 from . import fit as _fit
 from . import linkcount as _linkcount
 from .options import FitOptions, OptionsError
-from .scan import Scan, ScanError, load_scan, validate_scan
+from .files import read_scan as load_scan
+from .scan import Scan, ScanError, validate_scan
 
 __all__ = ["fit", "load_scan", "segment", "plan", "FitOptions", "OptionsError", "ScanError"]
 

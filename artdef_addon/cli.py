@@ -134,8 +134,7 @@ def _cmd_sample(a) -> int:
         raise _BadInput(str(exc)) from None
     from .scan import validate_scan
     validate_scan(sc)       # a sample is written only if it can be fitted
-    from .scan import save_scan
-    save_scan(a.output, sc)
+    files.write_scan(a.output, sc)
     print(f"wrote {a.output}: {a.name}, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields ({sc.kind})")
     return 0

@@ -8,8 +8,9 @@ Reading
     (a header declaring an enormous array, a truncated member), and any decoding failure becomes
     one :class:`BadFile` line naming the file and the problem. :func:`read_scan` and
     :func:`read_result` add the checks of their formats (README, "Scan format" / "Result file");
-    ``scan.load_scan`` and ``fit.load_result`` go through them, so the command line and the
-    Blender import operators apply the same rules.
+    ``artdef_addon.load_scan`` is :func:`read_scan` and ``fit.load_result`` goes through
+    :func:`read_result_arrays`, so the command line and the Blender import operators apply the
+    same rules.
 
 Writing
     :func:`check_outputs` runs before any work: each output's directory exists and is writable,
@@ -36,6 +37,7 @@ import zipfile
 
 import numpy as np
 
+from . import scan as S
 from .scan import ScanError
 
 #: the largest array a scan or result member may declare, as a multiple of the member's stored
@@ -248,7 +250,6 @@ def read_scan(path):
 
     Every problem is one :class:`BadFile` line naming the file. Degenerate triangles (zero area,
     repeated vertices) are legal and recorded in ``degenerate_faces`` (METHOD §2)."""
-    from . import scan as S
     name = _name(path)
     d = read_npz(path)
     if "face_labels" in d and "vertices" not in d:
@@ -482,3 +483,26 @@ def write_npz(path, arrays: dict, compress: bool = False) -> None:
     with Outputs() as out:
         out.write_npz(path, arrays, compress)
         out.commit()
+
+
+def scan_arrays(scan) -> dict:
+    """The members of ``scan`` in format v1 (``scan`` module docstring): float64 positions and
+    fields, int64 indices, the format version."""
+    out = {"format_version": np.int64(S.FORMAT_VERSION),
+           "vertices": np.asarray(scan.vertices, dtype=np.float64),
+           "faces": np.asarray(scan.faces, dtype=np.int64),
+           "probe_load": np.float64(scan.probe_load)}
+    for key, dtype in (("greens", np.float64), ("displacements", np.float64),
+                       ("load_vertices", np.int64), ("support_vertices", np.int64)):
+        value = getattr(scan, key)
+        if value is not None:
+            out[key] = np.asarray(value, dtype=dtype)
+    return out
+
+
+def write_scan(path, scan, compress: bool = False) -> None:
+    """Write ``scan`` in format v1, atomically, with exactly the name ``path``.
+
+    Uncompressed by default: measured fields barely compress and decompressing slows loading
+    (``benchmarks/results/scan_compression.md``)."""
+    write_npz(path, scan_arrays(scan), compress)

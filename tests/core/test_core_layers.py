@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import artdef_addon
-from artdef_addon import FitOptions, OptionsError, cli, samples, scan as S
+from artdef_addon import FitOptions, OptionsError, cli, files, samples, scan as S
 
 CORE = Path(artdef_addon.__file__).resolve().parent
 BLENDER = {"bpy", "bmesh", "mathutils", "addon_utils", "bpy_extras", "bl_math", "gpu"}
@@ -69,18 +69,10 @@ def test_core_never_names_blender():
         assert "import bpy" not in text and "importlib.import_module(\"bpy" not in text
 
 
-#: Import edges known to close a cycle, each to be removed when it is fixed (the test then fails
-#: until this entry goes): ``scan.load_scan``/``save_scan`` delegate (lazily) to the file boundary
-#: ``files``, which imports ``scan`` for the Scan type. Fix: callers use files.read_scan/write_scan.
-KNOWN_CYCLE_EDGES = {("scan", "files")}
-
-
 def test_core_has_no_import_cycle():
+    """Zero cycles among the core's modules, counting imports inside functions too."""
     graph = {k: {m for m in v[1] if m not in ("__init__", "__main__")} for k, v in _graph().items()
              if k not in ("__init__", "__main__")}
-    for a, b in KNOWN_CYCLE_EDGES:
-        assert b in graph[a], f"{a} no longer imports {b}: drop it from KNOWN_CYCLE_EDGES"
-        graph[a] = graph[a] - {b}
     state = {}
 
     def visit(node, stack):
@@ -119,7 +111,7 @@ def test_core_imports_without_blender():
 
 def test_public_fit_from_a_file_auto_links_and_save_load(tmp_path):
     path = tmp_path / "rod.npz"
-    S.save_scan(path, samples.make("rod"))
+    files.write_scan(path, samples.make("rod"))
     result = artdef_addon.fit(artdef_addon.load_scan(path), links="auto",
                               options=FitOptions(max_links=6))
     assert result.n_links == 3 and result.link_reason.startswith("links auto: chose 3")
@@ -189,7 +181,7 @@ def test_cli_arguments_come_from_the_declaration(capsys):
 
 def test_cli_refuses_a_bad_option_in_one_line(tmp_path, capsys):
     path = tmp_path / "rod.npz"
-    S.save_scan(path, samples.make("rod"))
+    files.write_scan(path, samples.make("rod"))
     assert cli.main(["fit", str(path), "--links", "3", "--p-max", "0.5", "-o", str(tmp_path / "r.npz")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("artdef: error: --p-max must be above 1") and "\n" not in err
