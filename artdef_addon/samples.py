@@ -18,9 +18,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .options import FloatRange, IntRange
 from .scan import Scan
 
 NAMES = ("rod", "branching", "greens_rod", "elastic")
+#: the ranges of the sample command's numeric settings (``python -m artdef_addon sample``), by name
+RANGES = {"fields": IntRange(1, 1000), "noise": FloatRange(0.0, 100.0), "seed": IntRange(0, 2 ** 63 - 1)}
 _SQUARE = np.array([(-1, -1), (0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0)], dtype=float)
 
 

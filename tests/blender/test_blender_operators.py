@@ -1429,6 +1429,8 @@ def test_fit_properties_are_the_cores_declaration(pkg):
             else:
                 assert p.default == pytest.approx(0 if default is None else default, rel=1e-6), name
                 assert p.hard_min == pytest.approx(0 if opt.optional else opt.min, rel=1e-6), name
+                if opt.max is not None:
+                    assert p.hard_max == pytest.approx(opt.max, rel=1e-6), name
     st = bpy.types.Object.bl_rna.properties["artdef"].fixed_type.properties
     for name in pkg.ops.SETTING_NAMES:
         assert name in bpy.ops.artdef.fit.get_rna_type().properties and name in st

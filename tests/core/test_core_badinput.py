@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import artdef_addon
-from artdef_addon import cli, files, fit as F, samples, scan as S
+from artdef_addon import cli, files, fit as F, options, samples, scan as S
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -372,17 +372,17 @@ def test_sample_numbers_range_checked(tmp_path, capsys, argv, says):
 
 
 def test_option_validators():
-    r = files.IntRange(1, 30).within(10, " (triangles)")
+    r = options.IntRange(1, 30).within(10, " (triangles)")
     assert r.check("--k", "7") == 7 and r.check("--k", 10) == 10
     for bad, says in [(0, "at least 1"), (11, "at most 10 (triangles)"), (True, "whole number"),
                       ("1e400", "whole number"), (2.5, "whole number")]:
-        with pytest.raises(files.OptionError, match=says.replace("(", r"\(").replace(")", r"\)")):
+        with pytest.raises(options.OptionError, match=says.replace("(", r"\(").replace(")", r"\)")):
             r.check("--k", bad)
-    assert files.IntRange(1, 30).within(100).hi == 30
-    f = files.FloatRange(0.0, lo_open=True)
+    assert options.IntRange(1, 30).within(100).hi == 30
+    f = options.FloatRange(0.0, lo_open=True)
     assert f.check("--x", "0.5") == 0.5
     for bad in ("0", "-1", "nan", "inf", "abc", None):
-        with pytest.raises(files.OptionError):
+        with pytest.raises(options.OptionError):
             f.check("--x", bad)
 
 

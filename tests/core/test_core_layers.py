@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import artdef_addon
-from artdef_addon import FitOptions, OptionsError, cli, files, samples, scan as S
+from artdef_addon import FitOptions, OptionsError, cli, files, options, samples, scan as S
 
 CORE = Path(artdef_addon.__file__).resolve().parent
 BLENDER = {"bpy", "bmesh", "mathutils", "addon_utils", "bpy_extras", "bl_math", "gpu"}
@@ -152,6 +152,32 @@ def test_options_are_checked_once_with_one_line(bad, word):
     with pytest.raises(OptionsError, match=word) as err:
         FitOptions(**bad)
     assert "\n" not in str(err.value)
+
+
+def test_cli_checks_and_fitoptions_share_the_declared_bounds():
+    """Each numeric setting's bounds are declared once: the command line's check
+    (``Option.range``) and FitOptions accept and refuse the same values at and around them."""
+    numeric = {n: o for n, (_, o) in FitOptions.declaration().items() if not o.choices}
+    assert set(numeric) == {"p_max", "max_links", "memory_budget"}
+    for name, opt in numeric.items():
+        step = 1 if opt.type is int else 1e-9
+        probes = [b + d for b in (opt.min, opt.max) if b is not None for d in (-step, 0, step)]
+        for v in probes:
+            try:
+                opt.range.check("--" + name, v)
+                cli_ok = True
+            except options.OptionError:
+                cli_ok = False
+            try:
+                FitOptions(**{name: v})
+                core_ok = True
+            except OptionsError:
+                core_ok = False
+            assert cli_ok == core_ok, (name, v, cli_ok, core_ok)
+    assert numeric["max_links"].range.hi == options.MAX_AUTO_LINKS
+    # a refused bound: the flag's message (command line) and the setting's (FitOptions)
+    with pytest.raises(options.OptionError, match="--memory-budget must be above 0"):
+        numeric["memory_budget"].range.check("--memory-budget", 0)
 
 
 def test_options_are_frozen_and_declare_everything():
