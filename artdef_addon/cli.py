@@ -300,15 +300,12 @@ def _cmd_fit(a) -> int:
     if auto:
         options = options.replace(max_links=max_links)
     t_fit = time.perf_counter()
-    try:
-        if not a.quiet:
-            # priced for this link count (or the --links auto search)
-            est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
-                              links=None if auto else links, auto=auto)
-            print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
-        result = api.fit(sc, "auto" if auto else links, options)
-    except OptionsError as exc:
-        raise _BadInput(str(exc)) from None
+    if not a.quiet:
+        # priced for this link count (or the --links auto search)
+        est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
+                          links=None if auto else links, auto=auto)
+        print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
+    result = api.fit(sc, "auto" if auto else links, options)     # sc and options checked above
     timings = {"load": t_load, **result.timings}
     timings["total"] = time.perf_counter() - t_fit
     result.timings = timings

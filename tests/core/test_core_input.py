@@ -5,6 +5,7 @@ import sys
 import numpy as np
 import pytest
 
+import artdef_addon
 from artdef_addon import files, fit as F, samples, scan as S
 
 
@@ -71,12 +72,13 @@ def test_more_links_than_triangles(rod):
 
 
 def test_bad_options(rod):
+    """Settings are checked where they enter, the public fit (FitOptions), before any work."""
     with pytest.raises(S.ScanError, match="pseudo-articulation needs a Green's-matrix scan"):
-        F.fit(rod, 3, mode="pseudo")
+        artdef_addon.fit(rod, 3, mode="pseudo")
     with pytest.raises(S.ScanError, match="p_max must be a number greater than 1"):
-        F.fit(rod, 3, p_max=0.5)
+        artdef_addon.fit(rod, 3, p_max=0.5)
     with pytest.raises(S.ScanError, match="mode must be one of"):
-        F.fit(rod, 3, mode="nope")
+        artdef_addon.fit(rod, 3, mode="nope")
 
 
 def test_load_refuses_pickles_and_garbage(tmp_path):

@@ -244,3 +244,22 @@ def test_no_private_name_is_used_outside_its_core_module():
                     and node.value.id in aliases and node.attr.startswith("_") and not node.attr.startswith("__")):
                 found.append(f"{path.stem} uses {aliases[node.value.id]}.{node.attr}")
     assert not found, found
+
+
+def test_a_scan_is_checked_once_where_it_enters(tmp_path, monkeypatch):
+    """Validation only where data enters: the file boundary checks a scan in full once; the public
+    fit, the segmentation cache and the stages take the checked scan as it is (the command line
+    too, from reading the file to writing the result)."""
+    path = tmp_path / "rod.npz"
+    files.write_scan(path, samples.make("rod"))
+    calls = []
+    real = S._check_scan
+    monkeypatch.setattr(S, "_check_scan", lambda sc: calls.append(1) or real(sc))
+    result = artdef_addon.fit(artdef_addon.load_scan(path), links=3)
+    assert result.n_links == 3 and len(calls) == 1
+    calls.clear()
+    assert cli.main(["fit", str(path), "--links", "3", "-q", "-o", str(tmp_path / "r.npz")]) == 0
+    assert len(calls) == 1
+    calls.clear()
+    artdef_addon.fit(samples.make("rod"), links=3)       # a scan made in Python enters at the fit
+    assert len(calls) == 1
