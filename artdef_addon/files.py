@@ -116,7 +116,7 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, name: str) -> np.nd
         arr = np.empty(count, dtype=dtype)          # allocated only now, its size checked
         view = memoryview(arr).cast("B")
         got = 0
-        while got < need:     # 1 MB reads: as fast as np.load (64 MB reads were 2-3x slower)
+        while got < need:     # 1 MB reads (benchmarks/results/core_constants.md)
             data = fp.read(min(1 << 20, need - got))
             if not data:
                 raise BadFile(f"{name}: member '{key}' is truncated")

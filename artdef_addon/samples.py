@@ -8,7 +8,7 @@
 * ``greens_rod`` — a Green's-matrix scan: unit loads at four vertices bend the rod (fixed at
   its support) through three rotational springs, plus a local dent at each load.
 * ``elastic``    — not articulated: the rod's tube bent, twisted and bulged smoothly along its
-  whole length (no rigid part, no joint), 12 fields; the fit's verdict must say so (issue 19).
+  whole length (no rigid part, no joint), 12 fields; the fit's verdict must say so (docs/metrics.md).
 
 ``make(name)`` returns a :class:`Scan`; ``make_with_truth(name)`` also returns the truth:
 ``face_labels``, ``joints`` (per link, its joint with its parent or the support), ``parents``.
