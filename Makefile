@@ -4,8 +4,10 @@
 wheels:
 	bash scripts/build_wheels.sh
 
+# Every platform's zip (cp311 + cp313 scipy wheels each) into dist/.
 extension:
-	bash scripts/env.sh
+	bash scripts/env.sh runtime
+	bash scripts/build_extension.sh
 
 demo:
 	bash scripts/demo.sh

@@ -2,10 +2,12 @@ import signal
 import sys
 
 from .cli import main
+from .headless import exit_process
 
 code = main()
 if "bpy" in sys.modules:
     # Blender's teardown at interpreter exit must not be interrupted: a SIGINT there (Python has
     # restored the default handler by then) killed the process or crashed it inside bpy
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-sys.exit(code)
+# not sys.exit: the bpy 4.5 module can hang at exit (headless.exit_process)
+exit_process(code)

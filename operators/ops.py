@@ -510,6 +510,7 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
         if job.model is None:
             self.report({'ERROR'}, "The fit returned no pseudo-articulation for that load point")
             return {'CANCELLED'}
+        before = rig.datablock_snapshot()
         try:
             model = apply_result(context, obj, job.result, job.scan, job.tri_polygons,
                                  load_index=self.load_index, frames_per_field=self.frames_per_field,
@@ -517,6 +518,12 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
                                  vertex_residual=job.vertex_residual)
         except Exception as err:
             traceback.print_exc()
+            try:
+                rig.clear_rig(obj, context.scene)
+            finally:
+                # whatever the build made and clear_rig did not know of yet
+                # (an action, armature or empty made just before the failure)
+                rig.remove_new_datablocks(before)
             self.report({'ERROR'}, f"Building the rig failed: {err}")
             return {'CANCELLED'}
         # The core's notes (why and how the reduced method ran) go to the Info log; the

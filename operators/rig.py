@@ -38,7 +38,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
-from . import io
+from . import compat, io
 
 GROUP_FMT = "artdef_link_{:02d}"
 HELPER_FMT = GROUP_FMT + "_load"   # Green's scans: the load-driven helper bone of a link
@@ -143,31 +143,13 @@ def remove_residual(mesh):
 
 
 # --------------------------------------------------------------------------
-# animation helpers (Blender 4.2 legacy actions and 4.4+ layered actions)
+# animation helpers (the version-dependent part lives in compat.new_action)
 # --------------------------------------------------------------------------
 
-def _layered(action):
-    return "slots" in action.bl_rna.properties
-
-
 def _new_action(id_data, name):
-    """Assign a new action to ``id_data`` and return a function making F-Curves."""
-    ad = id_data.animation_data or id_data.animation_data_create()
-    action = bpy.data.actions.new(name)
-    ad.action = action
-    if _layered(action):
-        from bpy_extras import anim_utils
-        slot = ad.action_slot
-        if slot is None:
-            slot = action.slots.new(id_type=id_data.id_type, name=id_data.name)
-            ad.action_slot = slot
-        bag = anim_utils.action_ensure_channelbag_for_slot(action, slot)
-
-        def new_fcurve(path, index, group):
-            return bag.fcurves.new(path, index=index, group_name=group)
-    else:
-        def new_fcurve(path, index, group):
-            return action.fcurves.new(path, index=index, action_group=group)
+    """Assign a new action to ``id_data``; return it and a function making F-Curves."""
+    action, new_fcurve = compat.new_action(id_data, name)
+    action["artdef_made"] = True
     return action, new_fcurve
 
 
@@ -405,6 +387,48 @@ def clear_rig(obj, scene=None):
 
 
 # --------------------------------------------------------------------------
+# datablocks: a failed build leaves none behind
+# --------------------------------------------------------------------------
+
+#: ID collections of ``bpy.data`` that a rig build could never create and that
+#: must not be touched (the UI's own).
+_UI_COLLECTIONS = {"window_managers", "screens", "workspaces", "libraries"}
+
+
+def id_collections():
+    """Names of every ``bpy.data`` collection of datablocks (objects, meshes,
+    armatures, actions, images, texts, shape_keys, ...), read from RNA so that
+    a collection added by a later Blender is counted too."""
+    names = []
+    for prop in bpy.data.bl_rna.properties:
+        if prop.type != 'COLLECTION':
+            continue
+        rna = prop.fixed_type
+        while rna is not None and rna.identifier != "ID":
+            rna = rna.base
+        if rna is not None:
+            names.append(prop.identifier)
+    return names
+
+
+def datablock_snapshot():
+    """``{collection: set of session_uid}`` of every datablock now in ``bpy.data``."""
+    return {name: {db.session_uid for db in getattr(bpy.data, name)}
+            for name in id_collections() if name not in _UI_COLLECTIONS}
+
+
+def remove_new_datablocks(before):
+    """Remove every datablock not in snapshot ``before``; return their names."""
+    new = []
+    for name, uids in before.items():
+        new += [db for db in getattr(bpy.data, name) if db.session_uid not in uids]
+    names = [f"{db.__class__.__name__} '{db.name}'" for db in new]
+    if new:
+        bpy.data.batch_remove(new)
+    return names
+
+
+# --------------------------------------------------------------------------
 # building
 # --------------------------------------------------------------------------
 
@@ -590,8 +614,9 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
         old = obj.vertex_groups.get(name)
         if old is not None:
             obj.vertex_groups.remove(old)
-        vg = _fill_vertex_group(obj, name, weights[:, l])
-        st.groups.add().name = vg.name
+        item = st.groups.add()  # recorded first: a failure while filling still clears it
+        item.name = name
+        item.name = _fill_vertex_group(obj, name, weights[:, l]).name
 
     # 2. armature, parenting, modifier
     greens = kind == "greens" and result.kappa is not None

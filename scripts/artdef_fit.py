@@ -36,4 +36,8 @@ if __name__ == "__main__":
     if "bpy" in sys.modules:   # no SIGINT inside Blender's teardown (see artdef_addon/__main__.py)
         import signal
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if not getattr(sys.modules["bpy"].app, "binary_path", ""):
+            # the bpy module (not inside Blender): it can hang at exit on 4.5
+            from artdef_addon.headless import exit_process
+            exit_process(code)
     sys.exit(code)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Build dist/artdef-<version>-<platform>.zip (one per platform, each with only
-# its own scipy wheel) with Blender's own extension builder, taken from the bpy
+# its own scipy wheels: cp311 and cp313) with Blender's own extension builder, taken from the bpy
 # module, then validate each zip.  Needs the venv (bpy) and wheels/.
 # ARTDEF_DIST=<dir> builds into another directory (the tests use a private one
 # so that concurrent test runs never see a half-written dist/).

@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
-# The demo command: set up the environment (idempotent), build the extension,
-# fit the bundled sample (rod by default; `bash scripts/demo.sh branching 4`
-# for the other one) and write out/: result .npz, .blend, .glb, .png.
+# The demo command: set up only what it needs (idempotent: .venv with the
+# runtime requirements, the glTF validator), fit the bundled sample (rod by
+# default; `bash scripts/demo.sh branching 4` for the other one) and write out/:
+# result .npz, .blend, .glb, .png.  No benchmark packages, no extension zips:
+# `make extension` (scripts/build_extension.sh) builds those.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 SAMPLE="${1:-rod}"
 LINKS="${2:-3}"
-bash scripts/env.sh
+bash scripts/env.sh runtime
 bash scripts/install_validator.sh
 PY="$ROOT/.venv/bin/python"
 
@@ -24,5 +26,9 @@ else
 fi
 echo "demo: wrote"
 ls -l out/scan.npz out/result.npz out/demo.blend out/demo.glb out/demo.png
-echo "demo: extension zips (drag one into Blender 4.2+ to install):"
-ls -l dist/artdef-*.zip
+if ls dist/artdef-*.zip >/dev/null 2>&1; then
+  echo "demo: extension zips (Blender 4.5 LTS to 5.3: Edit > Preferences > Get Extensions > Install from Disk):"
+  ls -l dist/artdef-*.zip
+else
+  echo "demo: to install into Blender 4.5 LTS to 5.3, build the zips: make extension (dist/artdef-*-<platform>.zip)"
+fi

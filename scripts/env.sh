@@ -1,46 +1,71 @@
 #!/usr/bin/env bash
-# Shared set-up for scripts/demo.sh and scripts/test.sh (sourced, or run alone):
-#   1. create .venv with Python 3.11 if missing (reused on later runs),
-#   2. install requirements-dev.txt (skipped when unchanged since last install),
-#   3. check that the bpy module loads (and name the Debian packages if not),
-#   4. download the bundled wheels and build the extension zips into dist/.
+# Set up one Python environment (idempotent; reused on later runs):
+#
+#   bash scripts/env.sh runtime   .venv      Python 3.13, bpy 5.2 LTS + scipy (requirements.txt): the demo
+#   bash scripts/env.sh dev       .venv      the same + pytest (requirements-dev.txt): tests, build
+#   bash scripts/env.sh 4.5       .venv-4.5  Python 3.11, bpy 4.5 LTS (requirements-4.5.txt): the
+#                                            second Blender the tests run on
+#
+# Each requirements file is installed again only when it changed.  The Python
+# comes from $PYTHON313 / $PYTHON311, else python3.X on PATH, else pyenv; if
+# none is found the script stops with one line saying what to install.
+# Building the extension zips is scripts/build_extension.sh (`make extension`).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
-VENV="$ROOT/.venv"
+WHAT="${1:-dev}"
+case "$WHAT" in
+  runtime) VENV="$ROOT/.venv"; WANT_PY=3.13; REQS=(requirements.txt) ;;
+  dev)     VENV="$ROOT/.venv"; WANT_PY=3.13; REQS=(requirements.txt requirements-dev.txt) ;;
+  4.5)     VENV="$ROOT/.venv-4.5"; WANT_PY=3.11; REQS=(requirements-4.5.txt) ;;
+  *) echo "env: unknown environment '$WHAT' (runtime, dev or 4.5)" >&2; exit 2 ;;
+esac
 PY="$VENV/bin/python"
+VAR="PYTHON${WANT_PY/./}"   # PYTHON313 / PYTHON311
 
-find_python311() {
-  for c in "${PYTHON311:-}" python3.11 python3; do
-    [ -n "$c" ] || continue
-    if command -v "$c" >/dev/null 2>&1 &&
-       "$c" -c 'import sys; raise SystemExit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
-      command -v "$c"; return 0
-    fi
-  done
+is_python() {  # is_python CMD... : runs and is Python $WANT_PY
+  "$@" -c "import sys; raise SystemExit(sys.version_info[:2] != tuple(map(int, '$WANT_PY'.split('.'))))" \
+    >/dev/null 2>&1
+}
+
+find_python() {  # prints a path to a working python$WANT_PY
+  local c
+  if [ -n "${!VAR:-}" ]; then
+    is_python "${!VAR}" && { echo "${!VAR}"; return 0; }
+    echo "env: \$$VAR=${!VAR} is not a working Python $WANT_PY" >&2; return 1
+  fi
+  # On PATH (a pyenv shim refuses unless that version is selected: then it fails here).
+  if c="$(command -v "python$WANT_PY")" && is_python "$c"; then echo "$c"; return 0; fi
+  # pyenv, without selecting the version globally.
+  if command -v pyenv >/dev/null 2>&1; then
+    for c in "$(pyenv root)"/versions/"$WANT_PY".*/bin/"python$WANT_PY"; do
+      [ -x "$c" ] && is_python "$c" && { echo "$c"; return 0; }
+    done
+  fi
   return 1
 }
 
-if [ ! -x "$PY" ] || ! "$PY" -c 'import sys; raise SystemExit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
-  PY311="$(find_python311)" || {
-    echo "env: Python 3.11 is required (bpy 5.0 is built for it); install python3.11 or set PYTHON311=/path/to/python3.11" >&2
-    exit 1; }
-  echo "env: creating .venv with $PY311"
-  rm -rf "$VENV"
-  "$PY311" -m venv "$VENV" || {
-    echo "env: 'python3.11 -m venv' failed; on Debian: apt-get install python3.11-venv" >&2; exit 1; }
+if [ -x "$PY" ] && is_python "$PY"; then
+  echo "env: reusing ${VENV#$ROOT/} ($("$PY" --version))"
 else
-  echo "env: reusing .venv ($("$PY" --version))"
+  BASE="$(find_python)" || {
+    echo "env: Python $WANT_PY not found: install it (e.g. 'pyenv install $WANT_PY', or your" \
+         "distribution's python$WANT_PY and python$WANT_PY-venv) or set $VAR=/path/to/python$WANT_PY" >&2
+    exit 3; }
+  echo "env: creating ${VENV#$ROOT/} with $BASE"
+  rm -rf "$VENV"
+  "$BASE" -m venv "$VENV" || {
+    echo "env: '$BASE -m venv' failed; on Debian: apt-get install python$WANT_PY-venv" >&2; exit 1; }
 fi
 
-STAMP="$VENV/.artdef-requirements.sha256"
-WANT="$(sha256sum requirements-dev.txt | cut -d' ' -f1)"
+STAMP="$VENV/.artdef-$WHAT.sha256"
+WANT="$(cat "${REQS[@]}" | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$WANT" ]; then
-  echo "env: installing requirements-dev.txt"
-  "$PY" -m pip install --disable-pip-version-check -q -r requirements-dev.txt
+  echo "env: installing ${REQS[*]} into ${VENV#$ROOT/}"
+  "$PY" -m pip install --disable-pip-version-check -q -r "${REQS[-1]}"
   echo "$WANT" > "$STAMP"
 else
-  echo "env: requirements-dev.txt already installed"
+  echo "env: ${REQS[-1]} already installed in ${VENV#$ROOT/}"
 fi
 
 # bpy links against a few X11/GL client libraries even when run headless.
@@ -56,5 +81,3 @@ if ! err="$("$PY" -c 'import bpy' 2>&1)"; then
     exit 1
   fi
 fi
-
-bash scripts/build_extension.sh

@@ -30,11 +30,16 @@ EXT_ID = "artdef"
 ADDON_MODULE = f"bl_ext.user_default.{EXT_ID}"
 PLATFORM = "linux-x64"
 
+#: The scipy the zip bundles for each Python that Blender embeds (see
+#: blender_manifest.toml): Blender 4.5 LTS/5.0 run Python 3.11, 5.1+ Python 3.13.
+BUNDLED_SCIPY = {(3, 11): "1.15.3", (3, 13): "1.16.3"}
+PYTHON_TAG = f"python{sys.version_info[0]}.{sys.version_info[1]}"
+
 # Directories and files at the repository root that are not part of the
 # extension (mirror of [build] paths_exclude_pattern): a change in them does
 # not make dist/ stale.
 _NOT_PACKAGED = {
-    ".git", ".venv", ".ci", ".tools", "tests", "benchmarks", "scripts", "dist",
+    ".git", ".venv", ".venv-4.5", ".ci", ".tools", "tests", "benchmarks", "scripts", "dist",
     "out", "wheels-cache", "node_modules", "docs", "__pycache__", ".pytest_cache",
 }
 
@@ -162,3 +167,30 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.heavy)
         if layer == "blender":
             item.add_marker(pytest.mark.blender)
+
+
+# --------------------------------------------------------------------------
+# process exit
+# --------------------------------------------------------------------------
+# The bpy 4.5 module can deadlock in its C++ static destructors at interpreter
+# exit after a glTF import/export (operators/compat.py, "Process exit"): the
+# test process would then never end.  Once pytest has printed everything
+# (pytest_unconfigure is its last hook), run the Python exit handlers and leave
+# with pytest's exit status, skipping the C-level teardown.
+
+_EXIT_STATUS = [0]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    _EXIT_STATUS[0] = int(exitstatus)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    if sys.modules.get("bpy") is None:
+        return
+    import atexit
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(_EXIT_STATUS[0])

@@ -8,14 +8,16 @@ import textwrap
 import tomllib
 import zipfile
 
-from conftest import REPO_ROOT
+from conftest import BUNDLED_SCIPY, PYTHON_TAG, REPO_ROOT
 
-SCIPY_VERSION = "1.15.3"
-PLATFORM_WHEEL_TAG = {
-    "linux_x64": "manylinux_2_17_x86_64",
-    "windows_x64": "win_amd64",
-    "macos_arm64": "macosx_12_0_arm64",
-    "macos_x64": "macosx_10_13_x86_64",
+#: The scipy this Python's Blender installs from the zip.
+SCIPY_VERSION = BUNDLED_SCIPY.get(sys.version_info[:2], "none for this Python")
+#: Per platform zip: the platform tag of its cp311 and of its cp313 wheel.
+PLATFORM_WHEEL_TAGS = {
+    "linux_x64": ("manylinux_2_17_x86_64", "manylinux_2_17_x86_64"),
+    "windows_x64": ("win_amd64", "win_amd64"),
+    "macos_arm64": ("macosx_12_0_arm64", "macosx_12_0_arm64"),
+    "macos_x64": ("macosx_10_13_x86_64", "macosx_10_14_x86_64"),
 }
 
 
@@ -35,19 +37,23 @@ def test_zip_contains_the_package_and_only_the_package(extension_zip):
                      "requirements-dev.txt", ".gitignore"):
         assert excluded not in tops, f"{excluded} must not be packaged"
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
-    wheels = [n for n in names if n.endswith(".whl")]
+    wheels = sorted(n for n in names if n.endswith(".whl"))
     assert wheels == [
-        f"wheels/scipy-{SCIPY_VERSION}-cp311-cp311-"
-        "manylinux_2_17_x86_64.manylinux2014_x86_64.whl"], wheels
+        "wheels/scipy-1.15.3-cp311-cp311-manylinux_2_17_x86_64.manylinux2014_x86_64.whl",
+        "wheels/scipy-1.16.3-cp313-cp313-manylinux2014_x86_64.manylinux_2_17_x86_64.whl"], wheels
     assert not [n for n in names if "numpy" in n.lower()], "numpy must never be bundled"
 
 
-def test_each_platform_zip_has_only_its_own_wheel(extension_zip):
-    for platform, tag in PLATFORM_WHEEL_TAG.items():
+def test_each_platform_zip_has_only_its_own_wheels(extension_zip):
+    """One cp311 (Blender 4.5 LTS, 5.0) and one cp313 (5.1+) scipy wheel per
+    platform zip, both for that platform only."""
+    for platform, (tag311, tag313) in PLATFORM_WHEEL_TAGS.items():
         z = extension_zip.with_name(extension_zip.name.replace("linux_x64", platform))
         assert z.is_file(), f"{z.name} was not built"
-        wheels = [n for n in _names(z) if n.endswith(".whl")]
-        assert len(wheels) == 1 and tag in wheels[0], (platform, wheels)
+        wheels = sorted(n for n in _names(z) if n.endswith(".whl"))
+        assert len(wheels) == 2, (platform, wheels)
+        assert "cp311-cp311" in wheels[0] and tag311 in wheels[0], (platform, wheels)
+        assert "cp313-cp313" in wheels[1] and tag313 in wheels[1], (platform, wheels)
 
 
 def test_zip_manifest(extension_zip):
@@ -55,7 +61,8 @@ def test_zip_manifest(extension_zip):
         manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
     assert manifest["id"] == "artdef"
     assert manifest["type"] == "add-on"
-    assert manifest["blender_version_min"] == "4.2.0"
+    # 4.2 LTS is out of support and its glTF exporter fails on a Green's rig
+    assert manifest["blender_version_min"] == "4.5.0"
     assert len(manifest["tagline"]) <= 64 and manifest["tagline"][-1].isalnum()
     assert set(manifest["platforms"]) == {"linux-x64", "windows-x64", "macos-arm64", "macos-x64"}
     # Every listed wheel is shipped in the source tree's wheels/ (build_wheels.sh).
@@ -109,13 +116,14 @@ def test_register_unregister_twice(installed_addon):
 
 
 def _extension_site_packages(user_dir):
-    return user_dir / "extensions" / ".local" / "lib" / "python3.11" / "site-packages"
+    return user_dir / "extensions" / ".local" / "lib" / PYTHON_TAG / "site-packages"
 
 
 def test_bundled_scipy_wheel_is_installed(installed_addon, blender_user_dir):
     site = _extension_site_packages(blender_user_dir)
     assert (site / "scipy" / "__init__.py").is_file(), f"no scipy under {site}"
-    assert (site / f"scipy-{SCIPY_VERSION}.dist-info").is_dir()
+    assert (site / f"scipy-{SCIPY_VERSION}.dist-info").is_dir(), sorted(os.listdir(site))
+    assert len([d for d in os.listdir(site) if d.startswith("scipy-")]) == 1, "one scipy only"
     assert not (site / "numpy").exists(), "numpy must not be installed from the extension"
 
 
