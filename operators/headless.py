@@ -34,21 +34,6 @@ _HEADLESS_REPO = "artdef_headless"  # module name of the temporary extension rep
 _RENDER_TAG = "artdef_render_helper"
 
 
-def exit_process(code) -> None:
-    """End the process with ``code``.  With ``bpy`` loaded: run the Python exit
-    handlers (the temporary extension repository's clean-up), flush, and
-    ``os._exit``, skipping the C-level teardown, because the bpy 4.5 module can
-    deadlock in its C++ static destructors at exit after a glTF import/export
-    (outputs written, then a futex wait forever; see operators/compat.py)."""
-    code = 0 if code is None else code
-    if "bpy" not in sys.modules:
-        sys.exit(code)
-    atexit._run_exitfuncs()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code if isinstance(code, int) else 1)
-
-
 def _bpy():
     try:
         import bpy  # noqa: PLC0415 (lazy on purpose)

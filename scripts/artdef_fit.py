@@ -38,6 +38,6 @@ if __name__ == "__main__":
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         if not getattr(sys.modules["bpy"].app, "binary_path", ""):
             # the bpy module (not inside Blender): it can hang at exit on 4.5
-            from artdef_addon.headless import exit_process
+            from artdef_addon.cli import exit_process
             exit_process(code)
     sys.exit(code)
