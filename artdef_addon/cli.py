@@ -6,6 +6,7 @@ or writing (one line, earlier files intact), 130 interrupted. See docs/cli.md.
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
 import sys
 import time
@@ -346,23 +347,6 @@ def _cmd_fit(a) -> int:
     return 0
 
 
-def exit_process(code) -> None:
-    """End the process with ``code``.  With ``bpy`` loaded (a Blender output or input): run the
-    Python exit handlers (the temporary extension repository's clean-up), flush, and ``os._exit``,
-    skipping the C-level teardown, because the bpy 4.5 module can deadlock in its C++ static
-    destructors at exit after a glTF import/export (see operators/compat.py). Here, not in the
-    Blender layer, because ``python -m artdef_addon`` must run without it; it only looks at
-    ``sys.modules``."""
-    import atexit
-    code = 0 if code is None else code
-    if "bpy" not in sys.modules:
-        sys.exit(code)
-    atexit._run_exitfuncs()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code if isinstance(code, int) else 1)
-
-
 def main(argv=None) -> int:
     """Run the command line; returns the exit code (README, "Exit codes and guarantees"):
     0 success, 2 bad input or unusable output path (one line, nothing written), 1 a failure while
@@ -398,3 +382,19 @@ def main(argv=None) -> int:
         msg = " ".join(str(exc).split())
         return _fail(f"internal error: {type(exc).__name__}: {msg} (earlier files are unchanged; "
                      "set ARTDEF_TRACEBACK=1 for the traceback)", 1)
+
+
+def exit_process(code) -> None:
+    """End the process with ``code``.  With ``bpy`` loaded: run the Python exit
+    handlers (the temporary extension repository's clean-up), flush, and
+    ``os._exit``, skipping the C-level teardown, because the bpy 4.5 module can
+    deadlock in its C++ static destructors at exit after a glTF import/export
+    (outputs written, then a futex wait forever; see operators/compat.py).
+    Only inspects ``sys.modules``: the core never imports bpy."""
+    code = 0 if code is None else code
+    if "bpy" not in sys.modules:
+        sys.exit(code)
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code if isinstance(code, int) else 1)

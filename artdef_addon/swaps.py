@@ -133,7 +133,7 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
             Rr, tr = lsq_motions(x0, fields, faces[ring], np.zeros(len(ring), dtype=np.int64), 1, corner_weights=True)
             R1[:, l], t1[:, l] = Rr[:, 0], tr[:, 0]
             w1, R1, t1, e1, info1 = alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS,
-                                               details=True, w_init=w)
+                                                     details=True, w_init=w, target=(1.0 - MIN_GAIN) * e)
             if e1 < (1.0 - MIN_GAIN) * e:
                 labels, w, R, t, e, info = new, w1, R1, t1, e1, info1
                 swaps += 1

@@ -200,7 +200,7 @@ def nla_clip_track(id_data, name, action, start):
 # exit normally.  ``python -m artdef_addon`` therefore ends with
 # ``os._exit`` after the Python exit handlers when the bpy module was loaded
 # (artdef_addon/cli.exit_process, used by artdef_addon/__main__.py and
-# scripts/artdef_fit.py: the core cannot import the Blender layer).
+# scripts/artdef_fit.py: the core cannot import this module).
 
 
 # --------------------------------------------------------------------------

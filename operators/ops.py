@@ -26,11 +26,15 @@ PROGRESS_HOOKS = []
 #: scripting and tests — not saved in the .blend).
 LAST_RESULTS = {}
 
-def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0):
+def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0, links=None,
+                auto=False):
     """What a fit with these settings will do, from counts only (the core's :func:`api.plan`):
-    ``(estimate, reduce_arg)``."""
+    ``(estimate, reduce_arg)``. ``links``: the link count the fit will use (its skin
+    decompositions grow with it; None: the core's default), ``auto``: Auto Links (the
+    link-count search, priced as the core prices it)."""
     return _api.plan(triangles, fields, vertices, kind,
-                     FitOptions(reduce=reduce.lower(), memory_budget=float(budget_gb)))
+                     FitOptions(reduce=reduce.lower(), memory_budget=float(budget_gb)),
+                     links=None if auto or links is None else int(links), auto=bool(auto))
 
 
 def cached_segmentation(obj):

@@ -1539,6 +1539,11 @@ def test_estimate_follows_the_settings(pkg):
     assert est.reduced and arg is True and est.units <= 1000
     est, arg = plan(1000, 12, 500, "greens", 'AUTO', 2.0)
     assert not est.reduced and arg is None
+    # a tracked fit's skin decompositions grow with the link count; Auto Links prices the search
+    few = plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, links=5)[0].seconds
+    many = plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, links=40)[0].seconds
+    auto = plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, links=5, auto=True)[0].seconds
+    assert few < many < auto
 
 
 def test_fit_progress_reads_as_words(pkg):
