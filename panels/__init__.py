@@ -193,7 +193,7 @@ def _draw_estimate(layout, mesh, st):
     """What a fit with these settings costs, from the counts only (no fit):
     memory, time and the method (full, or reduced on about N patches)."""
     info = io.scan_info(mesh)
-    auto = bool(st.auto_links and ops.HAS_AUTO_LINKS)
+    auto = bool(st.auto_links)
     est, _ = ops.method_plan(len(mesh.loop_triangles), info["fields"], len(mesh.vertices),
                              info["kind"], st.reduce, st.memory_budget, links=st.links, auto=auto)
     col = layout.column(align=True)
