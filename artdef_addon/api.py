@@ -26,7 +26,8 @@ from . import cost as _cost
 from . import fit as _fit
 from . import linkcount as _linkcount
 from .options import FitOptions, OptionsError
-from .scan import Scan, ScanError, load_scan, validate_scan
+from .files import read_scan as load_scan
+from .scan import Scan, ScanError, validate_scan
 
 __all__ = ["fit", "load_scan", "segment", "plan", "FitOptions", "OptionsError", "ScanError"]
 
@@ -74,8 +75,8 @@ def _key(scan: Scan, o: FitOptions, reduced: bool):
 
 
 def _checkout(scan: Scan, o: FitOptions, progress):
-    """A segmenter for ``scan`` and ``o`` (resolved), from the cache or new; ``(key, seg)``."""
-    scan = validate_scan(scan)
+    """A segmenter for ``scan`` (checked by the caller, :func:`fit` / :func:`segment`) and ``o``
+    (resolved), from the cache or new; ``(key, seg)``."""
     est, reduce_arg = plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices,
                            scan.kind, o)
     key = _key(scan, o, est.reduced)

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from .options import FitOptions, OptionsError
+from .options import LINKS, FitOptions, OptionError, OptionsError
 
 
 def _option_arguments(parser) -> None:
@@ -102,7 +102,6 @@ def _fail(msg: str, code: int = 2) -> int:
 
 
 def _check(rng, name, value):
-    from .files import OptionError
     try:
         return rng.check(name, value)
     except OptionError as exc:
@@ -111,7 +110,7 @@ def _check(rng, name, value):
 
 def _cmd_sample(a) -> int:
     from . import files, samples
-    R = files.RANGES
+    R = samples.RANGES
     files.check_outputs([], {"-o": a.output})
     if a.name not in samples.NAMES:
         raise _BadInput(f"unknown sample {a.name!r}; choose from {', '.join(samples.NAMES)}")
@@ -135,8 +134,7 @@ def _cmd_sample(a) -> int:
         raise _BadInput(str(exc)) from None
     from .scan import validate_scan
     validate_scan(sc)       # a sample is written only if it can be fitted
-    from .scan import save_scan
-    save_scan(a.output, sc)
+    files.write_scan(a.output, sc)
     print(f"wrote {a.output}: {a.name}, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields ({sc.kind})")
     return 0
@@ -233,7 +231,7 @@ def blender_layer():
 def _cmd_fit(a) -> int:
     from . import api, files
     from . import fit as fit_module
-    R = files.RANGES
+    R = {name: opt.range for name, (_, opt) in FitOptions.declaration().items() if not opt.choices}
     t0 = time.perf_counter()
     blender = bool(a.blend or a.glb or a.fbx or a.png)
     # every output checked before any work: writable directory, not an input, not each other
@@ -260,8 +258,8 @@ def _cmd_fit(a) -> int:
         raise _BadInput("--frames applies to animated files and sequences, not to a .npz scan")
     auto = str(a.links).strip().lower() == "auto"
     try:
-        links = None if auto else R["links"].check("--links", a.links)
-    except files.OptionError as exc:
+        links = None if auto else LINKS.check("--links", a.links)
+    except OptionError as exc:
         raise _BadInput(f"{exc} (or 'auto')") from None
     max_links = None if a.max_links is None else _check(R["max_links"], "--max-links", a.max_links)
     if a.p_max is not None:
@@ -299,19 +297,16 @@ def _cmd_fit(a) -> int:
     elif auto:
         max_links = _check(R["max_links"].within(usable, why), "--max-links", max_links)
     else:
-        links = _check(R["links"].within(usable, why), "--links", links)
+        links = _check(LINKS.within(usable, why), "--links", links)
     if auto:
         options = options.replace(max_links=max_links)
     t_fit = time.perf_counter()
-    try:
-        if not a.quiet:
-            # priced for this link count (or the --links auto search)
-            est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
-                              links=None if auto else links, auto=auto)
-            print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
-        result = api.fit(sc, "auto" if auto else links, options)
-    except OptionsError as exc:
-        raise _BadInput(str(exc)) from None
+    if not a.quiet:
+        # priced for this link count (or the --links auto search)
+        est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
+                          links=None if auto else links, auto=auto)
+        print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
+    result = api.fit(sc, "auto" if auto else links, options)     # sc and options checked above
     timings = {"load": t_load, **result.timings}
     timings["total"] = time.perf_counter() - t_fit
     result.timings = timings
@@ -356,7 +351,7 @@ def main(argv=None) -> int:
     """Run the command line; returns the exit code (README, "Exit codes and guarantees"):
     0 success, 2 bad input or unusable output path (one line, nothing written), 1 a failure while
     working or writing (one line, earlier files intact), 130 interrupted (Ctrl-C; nothing written)."""
-    from .files import OptionError, OutputError
+    from .files import OutputError
     from .scan import ScanError
     _committed.clear()
     try:

@@ -13,7 +13,7 @@ PAIRS_PER_SECOND = 3.0e7
 #: average-linkage seconds per condensed entry (scipy's nearest-neighbour chain)
 LINKAGE_SECONDS_PER_ENTRY = 9.0e-8
 #: reduced method: seconds per triangle × field of the streamed features and neighbour distances
-#: (107k triangles × 20 fields: 43 s on the shared machine under load, about 4× its idle time)
+#: (its measurement: ``benchmarks/results/core_constants.md``)
 REDUCED_SECONDS_PER_TRIANGLE_FIELD = 8.0e-6
 #: bytes per triangle per field of the cached per-field features
 FEATURE_BYTES = 8 * 63
@@ -117,10 +117,9 @@ PAIR_FIELD_WORK = 2.0e7
 
 
 #: the reduced method is also used, for speed, when the scan has more than this many times the
-#: patches it would use: the pairwise stage then costs (T/U)² = 4× or more than on patches, and on
-#: the shared rigged sets (CesiumMan 4.7k, wolf 10k, cheburashka 13k, dembones_bone 1.5k × 400
-#: fields) the patches give the same articulation error and ARI at 2–6× less whole-fit time
-#: (benchmarks/results/compare_dembones.md)
+#: patches it would use: the pairwise stage then costs (T/U)² = 4× or more than on patches, for the
+#: same articulation error and ARI on the shared rigged sets (``benchmarks/results/core_constants.md``,
+#: ``compare_dembones.md``)
 SPEED_FACTOR = 2.0
 
 

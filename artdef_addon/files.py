@@ -1,5 +1,5 @@
 """The file boundary: every file artdef reads is read and checked here, every file it writes is
-written here (atomically), and every numeric option is range-checked by a validator from here.
+written here (atomically).
 
 Reading
     :func:`read_npz` opens a ``.npz`` without unpickling and without trusting it: the first bytes
@@ -8,8 +8,9 @@ Reading
     (a header declaring an enormous array, a truncated member), and any decoding failure becomes
     one :class:`BadFile` line naming the file and the problem. :func:`read_scan` and
     :func:`read_result` add the checks of their formats (README, "Scan format" / "Result file");
-    ``scan.load_scan`` and ``fit.load_result`` go through them, so the command line and the
-    Blender import operators apply the same rules.
+    ``artdef_addon.load_scan`` is :func:`read_scan` and ``fit.load_result`` goes through
+    :func:`read_result_arrays`, so the command line and the Blender import operators apply the
+    same rules.
 
 Writing
     :func:`check_outputs` runs before any work: each output's directory exists and is writable,
@@ -19,14 +20,9 @@ Writing
     failed or interrupted run (an exception, Ctrl-C, a full disk) leaves every earlier file
     byte-identical and no partial file. A file is written with exactly the name given (numpy's
     ``savez`` would append ``.npz`` to a path; it is handed an open file instead).
-
-Options
-    :class:`IntRange` / :class:`FloatRange` are small frozen validators (``check(name, value)``)
-    that an options declaration can hold per setting; :class:`OptionError` is their one line.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import shutil
@@ -36,6 +32,7 @@ import zipfile
 
 import numpy as np
 
+from . import scan as S
 from .scan import ScanError
 
 #: the largest array a scan or result member may declare, as a multiple of the member's stored
@@ -57,10 +54,6 @@ class OutputError(ValueError):
     """An output path that cannot be written (checked before any work); one line."""
 
 
-class OptionError(ValueError):
-    """A numeric option out of its range; one line naming the option and the range."""
-
-
 def _line(text) -> str:
     s = " ".join(str(text).split())
     return s or "unknown problem"
@@ -68,76 +61,6 @@ def _line(text) -> str:
 
 def _name(path) -> str:
     return os.fspath(path)
-
-
-# ---------------------------------------------------------------- option validators
-@dataclasses.dataclass(frozen=True)
-class IntRange:
-    """Whole number in [lo, hi] (``hi`` None: unbounded). ``check`` returns it as ``int``."""
-    lo: int | None = None
-    hi: int | None = None
-    why_hi: str = ""
-
-    def check(self, name: str, value) -> int:
-        if isinstance(value, (bool, np.bool_)):
-            raise OptionError(f"{name} must be a whole number, got {value!r}")
-        try:
-            f = float(value)
-            ok = math.isfinite(f) and f == int(f)
-        except (TypeError, ValueError, OverflowError):
-            ok = False
-        if not ok:
-            raise OptionError(f"{name} must be a whole number, got {value!r}")
-        v = int(f) if not isinstance(value, (int, np.integer)) else int(value)
-        if self.lo is not None and v < self.lo:
-            raise OptionError(f"{name} must be at least {self.lo}, got {v}")
-        if self.hi is not None and v > self.hi:
-            raise OptionError(f"{name} must be at most {self.hi}{self.why_hi}, got {v}")
-        return v
-
-    def within(self, hi: int, why: str = "") -> "IntRange":
-        """The same range with its upper bound lowered to ``hi`` (e.g. a scan's triangle count)."""
-        return IntRange(self.lo, hi if self.hi is None else min(self.hi, hi),
-                        why if self.hi is None or hi < self.hi else self.why_hi)
-
-
-@dataclasses.dataclass(frozen=True)
-class FloatRange:
-    """Finite number in [lo, hi] (or (lo, hi] with ``lo_open``); ``hi`` None: unbounded."""
-    lo: float | None = None
-    hi: float | None = None
-    lo_open: bool = False
-
-    def check(self, name: str, value) -> float:
-        try:
-            v = float(value)
-        except (TypeError, ValueError, OverflowError):
-            raise OptionError(f"{name} must be a number, got {value!r}") from None
-        if not math.isfinite(v):
-            raise OptionError(f"{name} must be a finite number, got {value!r}")
-        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
-            raise OptionError(f"{name} must be {'above' if self.lo_open else 'at least'} {self.lo:g}, got {v:g}")
-        if self.hi is not None and v > self.hi:
-            raise OptionError(f"{name} must be at most {self.hi:g}, got {v:g}")
-        return v
-
-
-#: the most link counts ``--links auto`` may try: each count is a segmentation plus a skin solve, so
-#: the search grows with it (60 counts took 36 s on the 1,072-triangle branching sample; 584
-#: counts on a 584-triangle scan ran for more than 10 minutes)
-MAX_AUTO_LINKS = 100
-
-#: the range of every numeric fit/sample setting, by name; the command line checks its arguments
-#: with these (a bound that depends on the scan, like the triangle count, is added by ``within``)
-RANGES = {
-    "links": IntRange(1),
-    "max_links": IntRange(1, MAX_AUTO_LINKS, " (each count up to it is fitted)"),
-    "p_max": FloatRange(1.0, lo_open=True),
-    "memory_budget": FloatRange(0.0, 1e6, lo_open=True),
-    "fields": IntRange(1, 1000),
-    "noise": FloatRange(0.0, 100.0),
-    "seed": IntRange(0, 2 ** 63 - 1),
-}
 
 
 # ---------------------------------------------------------------- reading
@@ -193,7 +116,7 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, name: str) -> np.nd
         arr = np.empty(count, dtype=dtype)          # allocated only now, its size checked
         view = memoryview(arr).cast("B")
         got = 0
-        while got < need:     # 1 MB reads: as fast as np.load (64 MB reads were 2-3x slower)
+        while got < need:     # 1 MB reads (benchmarks/results/core_constants.md)
             data = fp.read(min(1 << 20, need - got))
             if not data:
                 raise BadFile(f"{name}: member '{key}' is truncated")
@@ -248,7 +171,6 @@ def read_scan(path):
 
     Every problem is one :class:`BadFile` line naming the file. Degenerate triangles (zero area,
     repeated vertices) are legal and recorded in ``degenerate_faces`` (METHOD §2)."""
-    from . import scan as S
     name = _name(path)
     d = read_npz(path)
     if "face_labels" in d and "vertices" not in d:
@@ -482,3 +404,26 @@ def write_npz(path, arrays: dict, compress: bool = False) -> None:
     with Outputs() as out:
         out.write_npz(path, arrays, compress)
         out.commit()
+
+
+def scan_arrays(scan) -> dict:
+    """The members of ``scan`` in format v1 (``scan`` module docstring): float64 positions and
+    fields, int64 indices, the format version."""
+    out = {"format_version": np.int64(S.FORMAT_VERSION),
+           "vertices": np.asarray(scan.vertices, dtype=np.float64),
+           "faces": np.asarray(scan.faces, dtype=np.int64),
+           "probe_load": np.float64(scan.probe_load)}
+    for key, dtype in (("greens", np.float64), ("displacements", np.float64),
+                       ("load_vertices", np.int64), ("support_vertices", np.int64)):
+        value = getattr(scan, key)
+        if value is not None:
+            out[key] = np.asarray(value, dtype=dtype)
+    return out
+
+
+def write_scan(path, scan, compress: bool = False) -> None:
+    """Write ``scan`` in format v1, atomically, with exactly the name ``path``.
+
+    Uncompressed by default: measured fields barely compress and decompressing slows loading
+    (``benchmarks/results/scan_compression.md``)."""
+    write_npz(path, scan_arrays(scan), compress)

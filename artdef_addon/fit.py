@@ -35,7 +35,6 @@ from . import patches as _patches
 from . import quality as _quality
 from . import swaps as _swaps
 from .metric import worker_count, field_features, rest_geometry
-from .options import FitOptions
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights
 
@@ -795,10 +794,10 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     seam's one-ring) or ``"refined"`` (per-vertex convex weights, at most 4 influences, fitted by
     least squares over all fields to the rig's link motions); ``"auto"`` refines for tracked
     scans and keeps seam weights for Green's scans.
+
+    The settings are taken as given: they are checked where they enter, by :class:`FitOptions`
+    in :func:`artdef_addon.fit` (which also refuses ``mode="pseudo"`` on a tracked scan).
     """
-    FitOptions(mode=mode, motion=motion, p_max=p_max, skin=skin)   # the one check of the settings
-    if mode == "pseudo" and scan.greens is None:
-        raise ScanError("pseudo-articulation needs a Green's-matrix scan (one model per load column)")
     try:
         links = int(links)
     except (TypeError, ValueError):

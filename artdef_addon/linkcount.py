@@ -4,9 +4,8 @@ The paper names the link count as its only parameter. Here it is chosen from the
 error curve: for every candidate k the segmentation is re-cut from the cached tree (no new
 distances), each link moves with its robust motion, every vertex gets its best convex blend of
 nearby link motions (:func:`skinning.refined_weights`), and e(k) is the Karni–Gotsman error
-100·‖X − X̂‖/‖X − X̄‖ of that articulation (X̄ each vertex's mean over the fields, the normalisation
-before issue 19; the rules below read ratios of one scan's errors, which the choice of X̄ scales alike —
-docs/metrics.md). With too few links some part of the object cannot
+100·‖X − X̂‖/‖X − X̄‖ of that articulation (X̄ each vertex's mean over the fields; the rules below
+read ratios of one scan's errors, which the choice of X̄ scales alike — docs/metrics.md). With too few links some part of the object cannot
 follow; once every articulated part has its link the curve drops to a floor (noise, local
 deformation). Where the scan has support vertices the fixed world is one more candidate motion
 (the paper's ground link). The choice is the smallest k with
@@ -22,33 +21,30 @@ log(ê(k)/ê(k+h)) / log((k+h)/k) > s); the first k where it does not is the tre
 
 Whole fits, upward (tracked scans without a fixed ground). The re-cut tree is cheap but a poor
 segmentation for short, blended bones, so its curve flattens before they all have a link: it
-undershoots on rigs with fingers and tail segments (Fox 17 of 22 links, RobotExpressive 26 of 36).
-The error of the whole fit (link swaps and refined skin, :func:`fit.fit`) instead drops to the
-data's floor once every bone has its link: on fresh RobotExpressive poses 0.075 % with 35 links,
-0.019 % with 36, no lower up to 40. So from the tree's choice k grows by the same slope rule on
-the whole fits' errors with s = 2 (one fit per count, the scan's segmenter reused). It only
+undershoots on rigs with fingers and tail segments. The error of the whole fit (link swaps and
+refined skin, :func:`fit.fit`) instead drops to the data's floor once every bone has its link. So
+from the tree's choice k grows by the same slope rule on the whole fits' errors with
+s = ``WHOLE_FIT_SLOPE`` (one fit per count, the scan's segmenter reused). It only
 adds links; a scan with support vertices keeps the tree's choice (the fit's skin has no ground
 candidate, so a link would be spent on the ground seam).
 
 Links that are not bones, downward (the same scans). Where the true skin weights are smooth
-(the CraGL characters: up to 10 influences per vertex, the median vertex's largest weight 0.69
-on the cheburashka), the error keeps falling past the true count, because under the
-4-influence limit a few more links explain a wide blend better than the true bones do: with the
-cow's true bones and motions the best 4-influence skin leaves 2.3 %, a 16-link fit 0.6 %. The
+(many influences per vertex), the error keeps falling past the true count, because under the
+4-influence limit a few more links explain a wide blend better than the true bones do. The
 extra links are of two kinds (:func:`spurious_links`):
 
 - *interpolating*: on its own vertices and over all fields, a convex blend of its neighbours'
-  motions reproduces the link's motion with less than ``INTERPOLATING`` (0.2) of the squared
-  error of its best single neighbour (:func:`interpolating_links`). A true bone turns on its own:
-  on the CraGL sets with their true links and motions the lowest ratio is 0.29, on the rigged
-  models' fits at their true count 0.25;
+  motions reproduces the link's motion with less than ``INTERPOLATING`` of the squared error of
+  its best single neighbour (:func:`interpolating_links`); a true bone turns on its own;
 - *blend handles*: the link owns a few triangles but its skin weights sum to more than
-  ``HANDLE`` (3) times the vertices of its own triangles, i.e. its motion serves mostly as an
-  ingredient of other vertices' blends. On every shared set's true skin that ratio is at most 1.9
-  (CesiumMan 1.6, RobotExpressive 1.0), on the fits at the true count at most 1.6.
+  ``HANDLE`` times the vertices of its own triangles, i.e. its motion serves mostly as an
+  ingredient of other vertices' blends.
 
-While the chosen fit has such links, k drops by their number and the scan is fitted again
-(cow 22 → 16 → 14 of 15, wolf 28 → 23 → 22 of 21, cheburashka 17 → 15 → 11 of 11).
+While the chosen fit has such links, k drops by their number and the scan is fitted again.
+
+The measurements that set τ, s, ``WHOLE_FIT_SLOPE``, ``INTERPOLATING`` and ``HANDLE`` (shared
+rigged and CraGL sets): ``benchmarks/results/core_constants.md``; the method: docs/method.md,
+"Automatic link count".
 """
 from __future__ import annotations
 

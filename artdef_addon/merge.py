@@ -340,8 +340,7 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     (scans of up to ``swaps.SWAP_BUDGET`` vertex-fields). Moving the seams changes which links
     each vertex may blend, so the decomposition is run again on the new labels, from the motions
     it found, and the faces relabelled, while that lowers its error (at most ``RELABEL_ROUNDS``
-    times): on RiggedFigure's own poses this puts 18 of 18 joints within 2 % instead of 16
-    (ARI 0.85 → 0.92). A link
+    times; figures: ``benchmarks/results/core_constants.md``). A link
     that would own no face — or none of the faces ``units`` that carry the link motions (the
     clustered triangles, or the patch representatives of the reduced method) — keeps its faces.
     ``labels`` (T,) over all faces, ``R`` (P, k, 3, 3), ``t`` (P, k, 3). Returns the new (T,) labels

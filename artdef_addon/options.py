@@ -13,6 +13,9 @@ second spelling). ``p_max`` is ``None`` when hardening is off (the Blender prope
 0). ``memory_budget`` is in GB (2³⁰ bytes); :attr:`FitOptions.budget_bytes` gives bytes.
 
 Values are checked once, when the options are made (``OptionsError``: one line naming the setting).
+The bounds are declared here only: ``FitOptions`` checks them, :attr:`Option.range` turns them
+into the command line's flag checks (:class:`IntRange` / :class:`FloatRange`, whose
+:class:`OptionError` names the flag), and the Blender layer reads them as property min/max.
 The "auto" rules (strategy, skin) live here too, in :meth:`FitOptions.resolved`.
 """
 from __future__ import annotations
@@ -20,10 +23,15 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from .files import MAX_AUTO_LINKS
+import numpy as np
+
 from .scan import ScanError
 
 GB = 2 ** 30
+
+#: the most link counts ``links="auto"`` may try: each count is a segmentation plus a skin solve,
+#: so the search grows with it (``benchmarks/results/links_auto.md``)
+MAX_AUTO_LINKS = 100
 
 
 class OptionsError(ScanError):
@@ -34,6 +42,66 @@ class OptionsError(ScanError):
     def __init__(self, message: str, option: str | None = None):
         super().__init__(message)
         self.option = option
+
+
+class OptionError(ValueError):
+    """A command-line value out of its range; one line naming the flag and the range."""
+
+
+@dataclasses.dataclass(frozen=True)
+class IntRange:
+    """Whole number in [lo, hi] (``hi`` None: unbounded). ``check`` returns it as ``int``."""
+    lo: int | None = None
+    hi: int | None = None
+    why_hi: str = ""
+
+    def check(self, name: str, value) -> int:
+        if isinstance(value, (bool, np.bool_)):
+            raise OptionError(f"{name} must be a whole number, got {value!r}")
+        try:
+            f = float(value)
+            ok = math.isfinite(f) and f == int(f)
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise OptionError(f"{name} must be a whole number, got {value!r}")
+        v = int(f) if not isinstance(value, (int, np.integer)) else int(value)
+        if self.lo is not None and v < self.lo:
+            raise OptionError(f"{name} must be at least {self.lo}, got {v}")
+        if self.hi is not None and v > self.hi:
+            raise OptionError(f"{name} must be at most {self.hi}{self.why_hi}, got {v}")
+        return v
+
+    def within(self, hi: int, why: str = "") -> "IntRange":
+        """The same range with its upper bound lowered to ``hi`` (e.g. a scan's triangle count)."""
+        return IntRange(self.lo, hi if self.hi is None else min(self.hi, hi),
+                        why if self.hi is None or hi < self.hi else self.why_hi)
+
+
+@dataclasses.dataclass(frozen=True)
+class FloatRange:
+    """Finite number in [lo, hi] (or (lo, hi] with ``lo_open``); ``hi`` None: unbounded."""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+
+    def check(self, name: str, value) -> float:
+        try:
+            v = float(value)
+        except (TypeError, ValueError, OverflowError):
+            raise OptionError(f"{name} must be a number, got {value!r}") from None
+        if not math.isfinite(v):
+            raise OptionError(f"{name} must be a finite number, got {value!r}")
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            raise OptionError(f"{name} must be {'above' if self.lo_open else 'at least'} {self.lo:g}, got {v:g}")
+        if self.hi is not None and v > self.hi:
+            raise OptionError(f"{name} must be at most {self.hi:g}, got {v:g}")
+        return v
+
+
+#: the link count's range (not a :class:`FitOptions` field: ``fit``'s own argument); the scan's
+#: usable triangles lower its upper bound (``within``)
+LINKS = IntRange(1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +124,7 @@ class Option:
     soft_min: float | None = None    # where the Blender slider starts
     soft_max: float | None = None
     max: float | None = None
+    why_max: str = ""                # said after the upper bound when it is exceeded
     optional: bool = False           # None allowed ("off")
     greens_only: bool = False        # only matters for Green's-matrix scans
     advanced: bool = False           # for experts and comparisons; the defaults are the product
@@ -63,6 +132,15 @@ class Option:
     @property
     def values(self) -> tuple:
         return tuple(c.value for c in self.choices)
+
+    @property
+    def range(self) -> "IntRange | FloatRange":
+        """The bounds above as a validator (numbers only): the command line checks its flags with
+        it, naming the flag in the message."""
+        if self.type is int:
+            return IntRange(None if self.min is None else int(self.min),
+                            None if self.max is None else int(self.max), self.why_max)
+        return FloatRange(self.min, self.max, lo_open=self.min_exclusive)
 
 
 def _field(default, **meta):
@@ -97,9 +175,11 @@ class FitOptions:
                     "off by default (linear response)")
     max_links: int = _field(
         30, label="Max Links", type=int, min=1, max=MAX_AUTO_LINKS, soft_max=64,
+        why_max=" (each count up to it is fitted)",
         description="Links auto: the largest link count tried")
     memory_budget: float = _field(
-        2.0, label="Memory Budget", type=float, unit="GB", min=0.001, soft_min=0.1, soft_max=64.0,
+        2.0, label="Memory Budget", type=float, unit="GB", min=0.0, min_exclusive=True, max=1e6,
+        soft_min=0.1, soft_max=64.0,
         advanced=True,
         description="Most memory the fit may use, in GB (2^30 bytes). With Reduced Method 'auto' a "
                     "scan whose full method would need more switches to the reduced method on "

@@ -71,7 +71,7 @@ def true_joint_errors(result, gt_joints, gt_parents, gt_face_labels):
     return np.array(bones, dtype=int), np.array(errs)
 
 
-# ------------------------------------------------------------------ fidelity (issue 19)
+# ------------------------------------------------------------------ fidelity
 @dataclasses.dataclass
 class Fidelity:
     """Reconstruction error of the articulation in the literature's two forms (docs/metrics.md).
@@ -79,8 +79,8 @@ class Fidelity:
     ``kg_percent``: the Karni–Gotsman distortion 100·‖X − X̂‖_F / ‖X − X̄‖_F, X (F, N, 3) the absolute
     positions x0 + u_p, X̂ the rig's reproduction, X̄ each frame's centroid broadcast over its vertices.
     ``e_rms``: ‖X − X̂‖_F / sqrt(3·N·F) in scene units (the RMS over coordinates). ``vertex_mean_percent``:
-    the same numerator over ‖X − X̄_v‖_F with X̄_v each vertex's mean over the frames (artdef's figure
-    before issue 19; it leaves out the shape's own extent, so it reads larger).
+    the same numerator over ‖X − X̄_v‖_F with X̄_v each vertex's mean over the frames (artdef's earlier
+    figure; it leaves out the shape's own extent, so it reads larger).
     """
     kg_percent: float
     e_rms: float
@@ -170,7 +170,7 @@ FEW_LINKS = 2.0
 
 @dataclasses.dataclass
 class Verdict:
-    """Is an articulated rig the right model? (issue 19; docs/metrics.md)"""
+    """Is an articulated rig the right model? (docs/metrics.md)"""
     articulation_percent: float   # the fit's Karni–Gotsman distortion
     rigid_percent: float          # one rigid motion per frame
     linear_percent: float         # the fields' best rank-k linear model with about the rig's parameters

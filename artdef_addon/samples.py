@@ -8,7 +8,7 @@
 * ``greens_rod`` — a Green's-matrix scan: unit loads at four vertices bend the rod (fixed at
   its support) through three rotational springs, plus a local dent at each load.
 * ``elastic``    — not articulated: the rod's tube bent, twisted and bulged smoothly along its
-  whole length (no rigid part, no joint), 12 fields; the fit's verdict must say so (issue 19).
+  whole length (no rigid part, no joint), 12 fields; the fit's verdict must say so (docs/metrics.md).
 
 ``make(name)`` returns a :class:`Scan`; ``make_with_truth(name)`` also returns the truth:
 ``face_labels``, ``joints`` (per link, its joint with its parent or the support), ``parents``.
@@ -18,9 +18,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .options import FloatRange, IntRange
 from .scan import Scan
 
 NAMES = ("rod", "branching", "greens_rod", "elastic")
+#: the ranges of the sample command's numeric settings (``python -m artdef_addon sample``), by name
+RANGES = {"fields": IntRange(1, 1000), "noise": FloatRange(0.0, 100.0), "seed": IntRange(0, 2 ** 63 - 1)}
 _SQUARE = np.array([(-1, -1), (0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0)], dtype=float)
 
 

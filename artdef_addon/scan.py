@@ -5,6 +5,11 @@ the displacement of every vertex under a unit load along x, y, z at each of M lo
 vertices) or a stack of tracked poses (paper §7.2, motion capture of a dense surface).
 Both end up as P displacement fields (P, N, 3), which is all the segmentation needs.
 
+This module is the data type and its checks only; files are read and written by the file
+boundary, :func:`artdef_addon.files.read_scan` / :func:`artdef_addon.files.write_scan`
+(``artdef_addon.load_scan`` is the former), which imports this module and is never imported
+by it.
+
 File layout (``.npz``, read with ``allow_pickle=False``):
 
 ==================== ============ ==================================================
@@ -24,7 +29,6 @@ key                  shape        meaning
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import numpy as np
 
@@ -217,33 +221,3 @@ def _check_scan(scan: Scan) -> Scan:
     if not np.any(fields):
         raise ScanError("too few fields: every displacement field is zero (nothing moves)")
     return out
-
-
-def load_scan(path: str | os.PathLike) -> Scan:
-    """Read a scan ``.npz`` (never unpickles) and validate it: :func:`artdef_addon.files.read_scan`
-    (the one read boundary of the command line and the Blender import). Raises ``ScanError``
-    (``files.BadFile``): one line naming the file and the problem."""
-    from .files import read_scan
-    return read_scan(path)
-
-
-def save_scan(path: str | os.PathLike, scan: Scan, compress: bool = False) -> None:
-    """Write ``scan`` in format v1 (float64 positions, int64 indices).
-
-    Uncompressed by default: measured fields barely compress (551 MB against 625 MB for a
-    1M-triangle, 50-field scan) while decompression tripled the load time (6.2 s against 1.9 s).
-    """
-    out = {"format_version": np.int64(FORMAT_VERSION),
-           "vertices": np.asarray(scan.vertices, dtype=np.float64),
-           "faces": np.asarray(scan.faces, dtype=np.int64),
-           "probe_load": np.float64(scan.probe_load)}
-    if scan.greens is not None:
-        out["greens"] = np.asarray(scan.greens, dtype=np.float64)
-    if scan.displacements is not None:
-        out["displacements"] = np.asarray(scan.displacements, dtype=np.float64)
-    if scan.load_vertices is not None:
-        out["load_vertices"] = np.asarray(scan.load_vertices, dtype=np.int64)
-    if scan.support_vertices is not None:
-        out["support_vertices"] = np.asarray(scan.support_vertices, dtype=np.int64)
-    from .files import write_npz
-    write_npz(path, out, compress)   # atomic, exactly this file name

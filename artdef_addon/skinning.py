@@ -407,9 +407,8 @@ def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray,
     solve   min_w Σ_p ‖Σ_{l∈C(v)} w_l (R_l^p x0(v) + t_l^p) − x^p(v)‖²   s.t. w ≥ 0, Σ w = 1,
     with at most ``max_influences`` non-zero weights (:func:`simplex_least_squares`). The pool is
     wider than the influences because a vertex blended over four bones is often explained better,
-    one link at a time, by a neighbouring bone it does not use: choosing its four links by their
-    single fit left 0.29 % Karni–Gotsman error on RobotExpressive's poses with the true links and
-    motions, the pool of 8 leaves 0.001 %.
+    one link at a time, by a neighbouring bone it does not use (figures:
+    ``benchmarks/results/core_constants.md``).
     given the link motions (R, t) (P, L, 3, 3) / (P, L, 3). The normal equations are sums
     over fields that factor into per-link-pair 4×4 matrices (Σ_p A_aᵀA_b, independent of the
     vertex) and one streamed pass of small matrix products over the fields (Le & Deng's SSDR
@@ -460,9 +459,8 @@ def update_motions(vertices: np.ndarray, fields: np.ndarray, weights: np.ndarray
     return _from_homogeneous(A, m0)
 
 
-#: geodesic reach of a link's skin, as a fraction of the bounding-box diagonal (refined skin). The
-#: rigged models' true weights reach that far: with their true links and motions a reach of 0.1
-#: leaves 0.39 % error on the Fox and 0.52 % on CesiumMan, 0.2 leaves < 0.001 % and 0.03 %
+#: geodesic reach of a link's skin, as a fraction of the bounding-box diagonal (refined skin): as
+#: far as the rigged models' true weights reach (``benchmarks/results/core_constants.md``)
 SKIN_RADIUS = 0.2
 
 

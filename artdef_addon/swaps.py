@@ -29,8 +29,8 @@ from .joints import lsq_motions
 MIN_GAIN = 0.005
 #: below this Karni–Gotsman ratio ‖X − X̂‖/‖X − X̄‖ the fields count as explained (no swaps)
 EXACT = 1e-4
-#: vertices × fields up to which swaps run (each trial is a 10-round decomposition of the whole
-#: scan: about 1.5 s at 8.6k vertices × 20 fields, 9 s at 54k × 20 on the benchmark machine)
+#: vertices × fields up to which swaps run (each trial is a ``TRIAL_ROUNDS`` decomposition of the
+#: whole scan; its time: ``benchmarks/results/core_constants.md``)
 SWAP_BUDGET = 500_000
 #: rounds of the decomposition per trial (the final refined skin runs to convergence)
 TRIAL_ROUNDS = 10

@@ -2,7 +2,7 @@
 
 Prints, for a generated articulated scan (default about 1M triangles × 50 tracked fields):
 
-- ``artdef.import_scan`` end to end, split into reading the ``.npz`` (the core's ``load_scan``:
+- ``artdef.import_scan`` end to end, split into reading the ``.npz`` (the core's ``files.read_scan``:
   decompression and validation), building the mesh and storing the fields as attributes;
 - ``operators.io.read_scan`` (what every fit and preview starts with: attributes → ``Scan``,
   fingerprint, validation);
@@ -50,7 +50,7 @@ def _reset_peak():
 def make_scan(path: str, triangles: int, fields: int):
     sys.path.insert(0, ROOT)
     sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-    from artdef_addon.scan import save_scan
+    from artdef_addon.files import write_scan as save_scan
     from generate import branching_scan
     t0 = time.perf_counter()
     scan, _ = branching_scan(triangles, fields)
@@ -77,7 +77,7 @@ def child(path: str, steps: str):
     addon_utils.enable(mod, default_set=True)
     io = importlib.import_module(mod + ".operators.io")
     ops = importlib.import_module(mod + ".operators.ops")
-    scan_mod = importlib.import_module(mod + ".artdef_addon.scan")
+    files_mod = importlib.import_module(mod + ".artdef_addon.files")
     bpy.ops.wm.read_homefile(use_empty=True)
     out = {"rss_start_mb": _status_kb("VmRSS") / 1024}
 
@@ -95,7 +95,7 @@ def child(path: str, steps: str):
                 parts[key] = parts.get(key, 0.0) + time.perf_counter() - t
         setattr(owner, name, wrapper)
 
-    timed(scan_mod, "load_scan", "load_scan (core: np.load + validate)")
+    timed(files_mod, "read_scan", "read_scan (core: read .npz + validate)")
     timed(io, "write_scan", "write_scan (field attributes)")
     timed(io, "new_mesh_from_scan", "new_mesh_from_scan (geometry + fields)")
 

@@ -100,11 +100,11 @@ def enable():
 def pkg(name):
     return importlib.import_module(MOD + "." + name)
 def imp():
-    scan, samples = pkg("artdef_addon.scan"), pkg("artdef_addon.samples")
+    files, samples = pkg("artdef_addon.files"), pkg("artdef_addon.samples")
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     for name in ("rod", "greens_rod"):
         path = os.path.join(out_dir, name + ".npz")
-        scan.save_scan(path, samples.make(name))
+        files.write_scan(path, samples.make(name))
         assert bpy.ops.artdef.import_scan(filepath=path) == {"FINISHED"}
         S[name] = bpy.context.view_layer.objects.active.name
     return "rod (tracked), greens_rod (Green's)"

@@ -28,6 +28,7 @@ from collections import namedtuple
 import bpy
 import numpy as np
 
+from ..artdef_addon import files as _files
 from ..artdef_addon import scan as _scan
 
 FIELD_PREFIX = "artdef_field_"
@@ -249,7 +250,7 @@ def import_scan_file(context, filepath):
     Raises ``ScanError`` (with a message naming the problem) before anything
     is created if the file is not a valid scan.
     """
-    scan = _scan.load_scan(filepath)
+    scan = _files.read_scan(filepath)
     name = os.path.splitext(os.path.basename(filepath))[0] or "scan"
     mesh = new_mesh_from_scan(name, scan)
     obj = bpy.data.objects.new(mesh.name, mesh)

@@ -34,7 +34,7 @@ def test_import_reports_the_boundarys_one_line(clean_scene, rod, tmp_path):
     the file is unchanged."""
     cases = {}
     good = tmp_path / "good.npz"
-    S.save_scan(good, rod)
+    files.write_scan(good, rod)
     raw = good.read_bytes()
     (tmp_path / "trunc.npz").write_bytes(raw[: len(raw) // 3])
     (tmp_path / "text.npz").write_text("not numbers\n")
@@ -63,7 +63,7 @@ def test_degenerate_and_unreferenced_accepted_as_on_the_command_line(clean_scene
     v = np.vstack([rod.vertices, [[40.0, 5, 5]]])
     d = np.concatenate([rod.displacements, np.zeros((3, 1, 3))], axis=1)
     path = tmp_path / "odd.npz"
-    S.save_scan(path, S.Scan(v, faces, displacements=d))
+    files.write_scan(path, S.Scan(v, faces, displacements=d))
     assert len(files.read_scan(path).degenerate_faces) == 2
     assert bpy.ops.artdef.import_scan(filepath=str(path)) == {'FINISHED'}
     obj = bpy.context.view_layer.objects.active
@@ -99,7 +99,7 @@ def _interrupt_at(cmd, marker, cwd):
 ])
 def test_ctrl_c_in_the_blender_stage(tmp_path, marker):
     scan = tmp_path / "br.npz"
-    S.save_scan(scan, samples.make("branching"))
+    files.write_scan(scan, samples.make("branching"))
     out = tmp_path / "out.npz"
     out.write_bytes(b"earlier result")
     (tmp_path / "out.blend").write_bytes(b"earlier blend")

@@ -27,6 +27,7 @@ def pkg(installed_addon):
     """Modules of the installed extension."""
     class P:
         scan = importlib.import_module(installed_addon + ".artdef_addon.scan")
+        files = importlib.import_module(installed_addon + ".artdef_addon.files")
         samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
         model = importlib.import_module(installed_addon + ".artdef_addon.model")
         ops = importlib.import_module(installed_addon + ".operators.ops")
@@ -42,7 +43,7 @@ def sample_files(pkg, tmp_path_factory):
     out = {}
     for name in ("rod", "branching", "greens_rod"):
         path = d / f"{name}.npz"
-        pkg.scan.save_scan(path, pkg.samples.make(name))
+        pkg.files.write_scan(path, pkg.samples.make(name))
         out[name] = str(path)
     return out
 
@@ -127,7 +128,7 @@ def test_registered_ui(installed_addon):
 
 
 def test_import_tracked_scan_round_trips(clean_scene, pkg, sample_files, tmp_path):
-    ref = pkg.scan.load_scan(sample_files["rod"])
+    ref = pkg.files.read_scan(sample_files["rod"])
     obj = import_scan(sample_files["rod"])
     mesh = obj.data
     assert len(mesh.vertices) == len(ref.vertices)
@@ -150,7 +151,7 @@ def test_import_tracked_scan_round_trips(clean_scene, pkg, sample_files, tmp_pat
 
 
 def test_import_greens_scan_round_trips(clean_scene, pkg, sample_files):
-    ref = pkg.scan.load_scan(sample_files["greens_rod"])
+    ref = pkg.files.read_scan(sample_files["greens_rod"])
     obj = import_scan(sample_files["greens_rod"])
     back = pkg.io.read_scan(obj).scan
     assert back.kind == "greens"
@@ -243,7 +244,7 @@ def check_load_helpers(pkg, arm, names, greens):
 
 @pytest.mark.parametrize("name,links", [("rod", 3), ("branching", 11)])
 def test_fit_tracked_builds_rig_and_replays_fields(clean_scene, pkg, sample_files, name, links):
-    ref = pkg.scan.load_scan(sample_files[name])
+    ref = pkg.files.read_scan(sample_files[name])
     obj = import_scan(sample_files[name])
     rest = rest_positions(obj)
     assert bpy.ops.artdef.fit(links=links) == {'FINISHED'}
@@ -301,7 +302,7 @@ def test_greens_loads_drive_rig_like_the_model(clean_scene, pkg, sample_files, m
     assert not bpy.context.preferences.filepaths.use_scripts_auto_execute
     if max_expr is not None:  # force partial sums (long driver expressions)
         monkeypatch.setattr(pkg.rig, "MAX_EXPRESSION", max_expr)
-    ref = pkg.scan.load_scan(sample_files["greens_rod"])
+    ref = pkg.files.read_scan(sample_files["greens_rod"])
     obj = import_scan(sample_files["greens_rod"])
     rest = rest_positions(obj)
     assert bpy.ops.artdef.fit(links=3, p_max=p_max) == {'FINISHED'}
@@ -327,7 +328,7 @@ def test_greens_loads_drive_rig_like_the_model(clean_scene, pkg, sample_files, m
 
 
 def test_pseudo_mode_builds_one_load_points_rig(clean_scene, pkg, sample_files):
-    ref = pkg.scan.load_scan(sample_files["greens_rod"])
+    ref = pkg.files.read_scan(sample_files["greens_rod"])
     obj = import_scan(sample_files["greens_rod"])
     rest = rest_positions(obj)
     assert bpy.ops.artdef.fit(links=3, mode='PSEUDO', load_index=2) == {'FINISHED'}
@@ -356,7 +357,7 @@ def fit_greens_rod(pkg, sample_files):
     obj = import_scan(sample_files["greens_rod"])
     rest = rest_positions(obj)
     assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
-    ref = pkg.scan.load_scan(sample_files["greens_rod"])
+    ref = pkg.files.read_scan(sample_files["greens_rod"])
     arm, result = check_rig(pkg, obj, 3, ref.n_fields)
     return obj, arm, result, rest
 
@@ -437,7 +438,7 @@ def test_greens_clear_rig_removes_helpers_and_refit_rebuilds(clean_scene, pkg, s
     assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
     assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}  # a re-fit replaces its own rig
     assert [a.name for a in bpy.data.armatures] == [f"{obj.name}_artdef_rig"]
-    arm, result = check_rig(pkg, obj, 3, pkg.scan.load_scan(sample_files["greens_rod"]).n_fields)
+    arm, result = check_rig(pkg, obj, 3, pkg.files.read_scan(sample_files["greens_rod"]).n_fields)
     assert len(arm.data.bones) == 6
     set_loads(obj, LOADS[:len(result.load_vertices)])
     want = pkg.model.evaluate_loads(result, rest, LOADS[:len(result.load_vertices)])
@@ -486,7 +487,7 @@ def test_refit_replaces_only_its_own_rig(clean_scene, pkg, sample_files):
         user_group.weight(1)  # still not in the group
     assert [m.name for m in obj.modifiers] == ["ArtDef Armature", "user_subsurf"]
     assert tuple(bpy.data.objects["user_thing"].location) == (1, 2, 3)
-    check_rig(pkg, obj, 2, pkg.scan.load_scan(sample_files["rod"]).n_fields)
+    check_rig(pkg, obj, 2, pkg.files.read_scan(sample_files["rod"]).n_fields)
     # Clear Rig removes all of it and nothing else
     assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
     assert sorted(o.name for o in bpy.data.objects) == ["rod", "user_thing"]
@@ -542,7 +543,7 @@ def test_no_scan_no_fit(clean_scene):
 # --------------------------------------------------------------------------
 
 def test_fields_from_shape_keys(clean_scene, pkg, sample_files):
-    ref = pkg.scan.load_scan(sample_files["rod"])
+    ref = pkg.files.read_scan(sample_files["rod"])
     mesh = bpy.data.meshes.new("mocap")
     mesh.from_pydata(ref.vertices.tolist(), [], ref.faces.tolist())
     obj = bpy.data.objects.new("mocap", mesh)
@@ -661,14 +662,14 @@ def test_rig_follows_mesh_transform_and_parent(clean_scene, pkg, sample_files):
 def test_fit_job_runs_in_a_thread_and_cancels(pkg, sample_files):
     """The worker-thread job behind the interactive (modal, Esc) path."""
     fit_mod = importlib.import_module(pkg.scan.__name__.rsplit(".", 1)[0] + ".fit")
-    scan = pkg.scan.load_scan(sample_files["branching"])
+    scan = pkg.files.read_scan(sample_files["branching"])
     job = pkg.ops._FitJob(scan, 11)
     job.cancel.set()  # Esc before the first progress report
     job.start_thread()
     job.thread.join(60)
     assert not job.thread.is_alive()
     assert isinstance(job.error, fit_mod.FitCancelled) and job.result is None
-    job = pkg.ops._FitJob(pkg.scan.load_scan(sample_files["rod"]), 3)
+    job = pkg.ops._FitJob(pkg.files.read_scan(sample_files["rod"]), 3)
     job.start_thread()
     job.thread.join(60)
     assert job.error is None and job.result.n_links == 3
@@ -745,7 +746,7 @@ def test_panel_draws_scan_settings_and_summary(clean_scene, sample_files):
 # --------------------------------------------------------------------------
 
 def test_fit_stores_residual_and_link_quality(clean_scene, pkg, sample_files, tmp_path):
-    ref = pkg.scan.load_scan(sample_files["rod"])
+    ref = pkg.files.read_scan(sample_files["rod"])
     obj = import_scan(sample_files["rod"])
     rest = rest_positions(obj)
     assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
@@ -864,7 +865,7 @@ def test_greens_load_sweep_sets_and_restores_frame_range(clean_scene, sample_fil
 def test_greens_load_sweep_shows_each_load_case(clean_scene, pkg, sample_files, p_max):
     """At the sweep's peak frame of load k along axis d the rig is the model under
     that probe load alone; half-way up, under half of it."""
-    ref = pkg.scan.load_scan(sample_files["greens_rod"])
+    ref = pkg.files.read_scan(sample_files["greens_rod"])
     obj = import_scan(sample_files["greens_rod"])
     rest = rest_positions(obj)
     assert bpy.ops.artdef.fit(links=3, p_max=p_max) == {'FINISHED'}
@@ -1191,7 +1192,7 @@ def test_fields_from_animation_reports_changing_connectivity(clean_scene):
 # --------------------------------------------------------------------------
 
 def test_gltf_morph_targets_become_fields(clean_scene, pkg, sample_files, tmp_path):
-    ref = pkg.scan.load_scan(sample_files["rod"])
+    ref = pkg.files.read_scan(sample_files["rod"])
     mesh = bpy.data.meshes.new("morphs")
     mesh.from_pydata(ref.vertices.tolist(), [], ref.faces.tolist())
     mesh.shade_smooth()
@@ -1428,6 +1429,8 @@ def test_fit_properties_are_the_cores_declaration(pkg):
             else:
                 assert p.default == pytest.approx(0 if default is None else default, rel=1e-6), name
                 assert p.hard_min == pytest.approx(0 if opt.optional else opt.min, rel=1e-6), name
+                if opt.max is not None:
+                    assert p.hard_max == pytest.approx(opt.max, rel=1e-6), name
     st = bpy.types.Object.bl_rna.properties["artdef"].fixed_type.properties
     for name in pkg.ops.SETTING_NAMES:
         assert name in bpy.ops.artdef.fit.get_rna_type().properties and name in st
@@ -1439,7 +1442,7 @@ def test_fit_properties_are_the_cores_declaration(pkg):
 
 
 def test_fit_skin_option(clean_scene, pkg, sample_files):
-    ref = pkg.scan.load_scan(sample_files["rod"])
+    ref = pkg.files.read_scan(sample_files["rod"])
     obj = import_scan(sample_files["rod"])
     props = bpy.ops.artdef.fit.get_rna_type().properties
     assert props["skin"].default == 'AUTO' and props["skin"].description

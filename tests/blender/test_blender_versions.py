@@ -17,7 +17,7 @@ def mods(installed_addon):
         compat = importlib.import_module(installed_addon + ".operators.compat")
         rig = importlib.import_module(installed_addon + ".operators.rig")
         ops = importlib.import_module(installed_addon + ".operators.ops")
-        scan = importlib.import_module(installed_addon + ".artdef_addon.scan")
+        files = importlib.import_module(installed_addon + ".artdef_addon.files")
         samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
     return M
 
@@ -28,7 +28,7 @@ def scan_files(mods, tmp_path_factory):
     out = {}
     for name in ("rod", "greens_rod"):
         out[name] = str(d / f"{name}.npz")
-        mods.scan.save_scan(out[name], mods.samples.make(name))
+        mods.files.write_scan(out[name], mods.samples.make(name))
     return out
 
 

@@ -373,10 +373,10 @@ def test_export_rig_needs_a_rig(clean_scene):
 
 
 def test_greens_rig_exports_baked_without_helpers(clean_scene, installed_addon, tmp_path):
-    scan_mod = importlib.import_module(installed_addon + ".artdef_addon.scan")
+    scan_mod = importlib.import_module(installed_addon + ".artdef_addon.files")
     samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
     npz = tmp_path / "greens.npz"
-    scan_mod.save_scan(npz, samples.make("greens_rod"))
+    scan_mod.write_scan(npz, samples.make("greens_rod"))
     assert bpy.ops.artdef.import_scan(filepath=str(npz)) == {'FINISHED'}
     obj = bpy.context.active_object
     assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
@@ -433,10 +433,10 @@ def test_finalize_leaves_a_plain_armature_and_mesh(fitted_character, installed_a
 
 
 def test_finalize_bakes_a_greens_rig(clean_scene, installed_addon, tmp_path):
-    scan_mod = importlib.import_module(installed_addon + ".artdef_addon.scan")
+    scan_mod = importlib.import_module(installed_addon + ".artdef_addon.files")
     samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
     npz = tmp_path / "greens.npz"
-    scan_mod.save_scan(npz, samples.make("greens_rod"))
+    scan_mod.write_scan(npz, samples.make("greens_rod"))
     assert bpy.ops.artdef.import_scan(filepath=str(npz)) == {'FINISHED'}
     obj = bpy.context.active_object
     assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
@@ -578,10 +578,10 @@ def test_panel_shows_greens_settings_only_for_greens_and_the_rest_under_advanced
     assert ("panel", "ARTDEF_fit_advanced") in log
     props = {e[1] for e in _draw(closed=False) if e[0] == "prop"}
     assert {"motion", "reduce", "memory_budget"} <= props
-    scan_mod = importlib.import_module(installed_addon + ".artdef_addon.scan")
+    scan_mod = importlib.import_module(installed_addon + ".artdef_addon.files")
     samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
     npz = tmp_path / "greens.npz"
-    scan_mod.save_scan(npz, samples.make("greens_rod"))
+    scan_mod.write_scan(npz, samples.make("greens_rod"))
     assert bpy.ops.artdef.import_scan(filepath=str(npz)) == {'FINISHED'}
     props = {e[1] for e in _draw() if e[0] == "prop"}
     assert {"mode", "p_max"} <= props

@@ -18,7 +18,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from artdef_addon import cli, files, fit as F, samples, scan as S
+import artdef_addon
+from artdef_addon import cli, files, fit as F, options, samples, scan as S
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -60,7 +61,7 @@ def rod():
 @pytest.fixture
 def rod_file(rod, tmp_path):
     p = tmp_path / "rod.npz"
-    S.save_scan(p, rod)
+    files.write_scan(p, rod)
     return p
 
 
@@ -79,7 +80,7 @@ def _huge_header(rod):
 def bad_scans(rod, d):
     """name → (path, what the line must say)."""
     good = d / "good.npz"
-    S.save_scan(good, rod)
+    files.write_scan(good, rod)
     raw = good.read_bytes()
     cases = {}
     (d / "truncated.npz").write_bytes(raw[: len(raw) // 2])
@@ -140,10 +141,12 @@ def test_bad_scan_file_one_line_exit_2_nothing_written(rod, tmp_path, capsys, ca
 
 
 def test_load_scan_is_the_boundary_blender_uses(rod, tmp_path):
-    """scan.load_scan (what the Blender import operator calls) raises the same one-line BadFile."""
+    """``artdef_addon.load_scan`` is ``files.read_scan`` (what the Blender import operator calls):
+    the same one-line BadFile."""
+    assert artdef_addon.load_scan is files.read_scan
     for case, (path, says) in bad_scans(rod, tmp_path).items():
         with pytest.raises(files.BadFile) as exc:
-            S.load_scan(path)
+            files.read_scan(path)
         msg = str(exc.value)
         assert "\n" not in msg and says in msg and os.path.basename(path) in msg, (case, msg)
 
@@ -241,7 +244,7 @@ def test_output_written_with_exactly_the_name_given(rod_file, tmp_path, capsys):
     assert F.load_result(out).n_links == 3
     code, stdout, err = run(capsys, "sample", "rod", "-o", tmp_path / "scan.bin")
     assert code == 0 and "wrote" in stdout and (tmp_path / "scan.bin").is_file()
-    assert S.load_scan(tmp_path / "scan.bin").n_vertices == 297
+    assert files.read_scan(tmp_path / "scan.bin").n_vertices == 297
 
 
 # ---------------------------------------------------------------- failed or interrupted writes
@@ -304,7 +307,7 @@ def _interrupt_at(cmd, marker, tmp_path, env=None):
 
 def test_ctrl_c_during_the_fit(tmp_path):
     scan = tmp_path / "br.npz"
-    S.save_scan(scan, samples.make("branching"))
+    files.write_scan(scan, samples.make("branching"))
     out = tmp_path / "out.npz"
     out.write_bytes(b"earlier result")
     code, err = _interrupt_at([sys.executable, "-m", "artdef_addon", "fit", str(scan), "--links", "auto",
@@ -342,7 +345,7 @@ def test_max_links_is_bounded_by_the_triangles(tmp_path, capsys, monkeypatch):
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], float)
     f = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
     p = tmp_path / "tiny.npz"
-    S.save_scan(p, S.Scan(v, f, displacements=np.ones((2, 6, 3)) * [[[0.1]], [[0.2]]]))
+    files.write_scan(p, S.Scan(v, f, displacements=np.ones((2, 6, 3)) * [[[0.1]], [[0.2]]]))
     monkeypatch.setattr(F, "Segmenter", lambda *a, **k: pytest.fail("fitted despite a bad --max-links"))
     code, _, err = run(capsys, "fit", p, "--links", "auto", "--max-links", "50")
     assert code == 2 and "--max-links must be at most 4 (the scan's 4 non-degenerate triangles)" in err[0]
@@ -369,17 +372,17 @@ def test_sample_numbers_range_checked(tmp_path, capsys, argv, says):
 
 
 def test_option_validators():
-    r = files.IntRange(1, 30).within(10, " (triangles)")
+    r = options.IntRange(1, 30).within(10, " (triangles)")
     assert r.check("--k", "7") == 7 and r.check("--k", 10) == 10
     for bad, says in [(0, "at least 1"), (11, "at most 10 (triangles)"), (True, "whole number"),
                       ("1e400", "whole number"), (2.5, "whole number")]:
-        with pytest.raises(files.OptionError, match=says.replace("(", r"\(").replace(")", r"\)")):
+        with pytest.raises(options.OptionError, match=says.replace("(", r"\(").replace(")", r"\)")):
             r.check("--k", bad)
-    assert files.IntRange(1, 30).within(100).hi == 30
-    f = files.FloatRange(0.0, lo_open=True)
+    assert options.IntRange(1, 30).within(100).hi == 30
+    f = options.FloatRange(0.0, lo_open=True)
     assert f.check("--x", "0.5") == 0.5
     for bad in ("0", "-1", "nan", "inf", "abc", None):
-        with pytest.raises(files.OptionError):
+        with pytest.raises(options.OptionError):
             f.check("--x", bad)
 
 
@@ -411,7 +414,7 @@ def test_unusual_meshes_fit_on_the_command_line(rod, tmp_path, capsys):
     }
     for name, sc in cases.items():
         p = tmp_path / f"{name}.npz"
-        S.save_scan(p, sc)
+        files.write_scan(p, sc)
         code, out, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / f"{name}_r.npz")
         assert code == 0 and err == [], (name, err)
         r = F.load_result(tmp_path / f"{name}_r.npz")
@@ -422,7 +425,7 @@ def test_single_field_error_is_not_available_not_zero(rod, tmp_path, capsys):
     """One field: the Karni–Gotsman distortion (about each frame's centroid, issue 19) is defined and
     reported; the old per-vertex-mean figure divides by zero and is NaN, never 0."""
     p = tmp_path / "one.npz"
-    S.save_scan(p, S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[1:2]))
+    files.write_scan(p, S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[1:2]))
     code, out, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / "r.npz")
     assert code == 0 and err == []
     r = F.load_result(tmp_path / "r.npz")

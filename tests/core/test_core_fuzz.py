@@ -186,7 +186,7 @@ def _small_scan():
 @pytest.fixture(scope="module")
 def good_bytes(tmp_path_factory):
     p = tmp_path_factory.mktemp("good") / "good.npz"
-    S.save_scan(p, _small_scan())
+    files.write_scan(p, _small_scan())
     assert files.read_scan(p).n_vertices == 12
     return p.read_bytes()
 

@@ -5,7 +5,8 @@ import sys
 import numpy as np
 import pytest
 
-from artdef_addon import fit as F, samples, scan as S
+import artdef_addon
+from artdef_addon import files, fit as F, samples, scan as S
 
 
 @pytest.fixture
@@ -71,35 +72,36 @@ def test_more_links_than_triangles(rod):
 
 
 def test_bad_options(rod):
+    """Settings are checked where they enter, the public fit (FitOptions), before any work."""
     with pytest.raises(S.ScanError, match="pseudo-articulation needs a Green's-matrix scan"):
-        F.fit(rod, 3, mode="pseudo")
+        artdef_addon.fit(rod, 3, mode="pseudo")
     with pytest.raises(S.ScanError, match="p_max must be a number greater than 1"):
-        F.fit(rod, 3, p_max=0.5)
+        artdef_addon.fit(rod, 3, p_max=0.5)
     with pytest.raises(S.ScanError, match="mode must be one of"):
-        F.fit(rod, 3, mode="nope")
+        artdef_addon.fit(rod, 3, mode="nope")
 
 
 def test_load_refuses_pickles_and_garbage(tmp_path):
     obj = tmp_path / "obj.npz"
     np.savez(obj, vertices=np.array([{"a": 1}], dtype=object), faces=np.zeros((1, 3), int))
     with pytest.raises(S.ScanError, match="obj.npz: member 'vertices' holds Python objects"):
-        S.load_scan(obj)
+        files.read_scan(obj)
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"not a zip at all")
     with pytest.raises(S.ScanError, match="junk.npz: a text file, not a .npz archive"):
-        S.load_scan(junk)
+        files.read_scan(junk)
     with pytest.raises(S.ScanError, match="missing.npz: no such file"):
-        S.load_scan(tmp_path / "missing.npz")
+        files.read_scan(tmp_path / "missing.npz")
     missing = tmp_path / "nofaces.npz"
     np.savez(missing, vertices=np.zeros((3, 3)))
     with pytest.raises(S.ScanError, match="nofaces.npz: no 'faces' array"):
-        S.load_scan(missing)
+        files.read_scan(missing)
 
 
 def test_scan_roundtrip(tmp_path):
     sc = samples.make("greens_rod", probe_load=2.5)
-    S.save_scan(tmp_path / "g.npz", sc)
-    back = S.load_scan(tmp_path / "g.npz")
+    files.write_scan(tmp_path / "g.npz", sc)
+    back = files.read_scan(tmp_path / "g.npz")
     assert back.kind == "greens" and back.probe_load == 2.5
     assert np.array_equal(back.greens, sc.greens) and np.array_equal(back.load_vertices, sc.load_vertices)
     assert np.allclose(back.fields(), sc.fields())

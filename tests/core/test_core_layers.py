@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import artdef_addon
-from artdef_addon import FitOptions, OptionsError, cli, samples, scan as S
+from artdef_addon import FitOptions, OptionsError, cli, files, options, samples, scan as S
 
 CORE = Path(artdef_addon.__file__).resolve().parent
 BLENDER = {"bpy", "bmesh", "mathutils", "addon_utils", "bpy_extras", "bl_math", "gpu"}
@@ -69,18 +69,10 @@ def test_core_never_names_blender():
         assert "import bpy" not in text and "importlib.import_module(\"bpy" not in text
 
 
-#: Import edges known to close a cycle, each to be removed when it is fixed (the test then fails
-#: until this entry goes): ``scan.load_scan``/``save_scan`` delegate (lazily) to the file boundary
-#: ``files``, which imports ``scan`` for the Scan type. Fix: callers use files.read_scan/write_scan.
-KNOWN_CYCLE_EDGES = {("scan", "files")}
-
-
 def test_core_has_no_import_cycle():
+    """Zero cycles among the core's modules, counting imports inside functions too."""
     graph = {k: {m for m in v[1] if m not in ("__init__", "__main__")} for k, v in _graph().items()
              if k not in ("__init__", "__main__")}
-    for a, b in KNOWN_CYCLE_EDGES:
-        assert b in graph[a], f"{a} no longer imports {b}: drop it from KNOWN_CYCLE_EDGES"
-        graph[a] = graph[a] - {b}
     state = {}
 
     def visit(node, stack):
@@ -119,7 +111,7 @@ def test_core_imports_without_blender():
 
 def test_public_fit_from_a_file_auto_links_and_save_load(tmp_path):
     path = tmp_path / "rod.npz"
-    S.save_scan(path, samples.make("rod"))
+    files.write_scan(path, samples.make("rod"))
     result = artdef_addon.fit(artdef_addon.load_scan(path), links="auto",
                               options=FitOptions(max_links=6))
     assert result.n_links == 3 and result.link_reason.startswith("links auto: chose 3")
@@ -162,6 +154,32 @@ def test_options_are_checked_once_with_one_line(bad, word):
     assert "\n" not in str(err.value)
 
 
+def test_cli_checks_and_fitoptions_share_the_declared_bounds():
+    """Each numeric setting's bounds are declared once: the command line's check
+    (``Option.range``) and FitOptions accept and refuse the same values at and around them."""
+    numeric = {n: o for n, (_, o) in FitOptions.declaration().items() if not o.choices}
+    assert set(numeric) == {"p_max", "max_links", "memory_budget"}
+    for name, opt in numeric.items():
+        step = 1 if opt.type is int else 1e-9
+        probes = [b + d for b in (opt.min, opt.max) if b is not None for d in (-step, 0, step)]
+        for v in probes:
+            try:
+                opt.range.check("--" + name, v)
+                cli_ok = True
+            except options.OptionError:
+                cli_ok = False
+            try:
+                FitOptions(**{name: v})
+                core_ok = True
+            except OptionsError:
+                core_ok = False
+            assert cli_ok == core_ok, (name, v, cli_ok, core_ok)
+    assert numeric["max_links"].range.hi == options.MAX_AUTO_LINKS
+    # a refused bound: the flag's message (command line) and the setting's (FitOptions)
+    with pytest.raises(options.OptionError, match="--memory-budget must be above 0"):
+        numeric["memory_budget"].range.check("--memory-budget", 0)
+
+
 def test_options_are_frozen_and_declare_everything():
     o = FitOptions()
     with pytest.raises(Exception):
@@ -189,7 +207,7 @@ def test_cli_arguments_come_from_the_declaration(capsys):
 
 def test_cli_refuses_a_bad_option_in_one_line(tmp_path, capsys):
     path = tmp_path / "rod.npz"
-    S.save_scan(path, samples.make("rod"))
+    files.write_scan(path, samples.make("rod"))
     assert cli.main(["fit", str(path), "--links", "3", "--p-max", "0.5", "-o", str(tmp_path / "r.npz")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("artdef: error: --p-max must be above 1") and "\n" not in err
@@ -226,3 +244,22 @@ def test_no_private_name_is_used_outside_its_core_module():
                     and node.value.id in aliases and node.attr.startswith("_") and not node.attr.startswith("__")):
                 found.append(f"{path.stem} uses {aliases[node.value.id]}.{node.attr}")
     assert not found, found
+
+
+def test_a_scan_is_checked_once_where_it_enters(tmp_path, monkeypatch):
+    """Validation only where data enters: the file boundary checks a scan in full once; the public
+    fit, the segmentation cache and the stages take the checked scan as it is (the command line
+    too, from reading the file to writing the result)."""
+    path = tmp_path / "rod.npz"
+    files.write_scan(path, samples.make("rod"))
+    calls = []
+    real = S._check_scan
+    monkeypatch.setattr(S, "_check_scan", lambda sc: calls.append(1) or real(sc))
+    result = artdef_addon.fit(artdef_addon.load_scan(path), links=3)
+    assert result.n_links == 3 and len(calls) == 1
+    calls.clear()
+    assert cli.main(["fit", str(path), "--links", "3", "-q", "-o", str(tmp_path / "r.npz")]) == 0
+    assert len(calls) == 1
+    calls.clear()
+    artdef_addon.fit(samples.make("rod"), links=3)       # a scan made in Python enters at the fit
+    assert len(calls) == 1

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from artdef_addon import fit as F, joints, linkcount, quality, samples, scan as S, skinning
+from artdef_addon import files, fit as F, joints, linkcount, quality, samples, scan as S, skinning
 
 DATA = Path(__file__).parent.parent / "data"
 
@@ -192,7 +192,7 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     assert choice.reusable(motion="lsq") is None
     from artdef_addon import cli
     path = tmp_path / "branching.npz"
-    S.save_scan(path, scan)
+    files.write_scan(path, scan)
     calls = []
     real_fit = F.fit
     monkeypatch.setattr(F, "fit", lambda *a, **k: calls.append(a[1]) or real_fit(*a, **k))
