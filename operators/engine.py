@@ -118,11 +118,5 @@ class ARTDEF_OT_rotation_only(bpy.types.Operator):
 classes = (ARTDEF_OT_rotation_only,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+# Blender's own helper: registers in order, unregisters in reverse
+register, unregister = bpy.utils.register_classes_factory(classes)

@@ -223,11 +223,5 @@ class ARTDEF_OT_finalize(bpy.types.Operator):
 classes = (ARTDEF_OT_finalize,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+# Blender's own helper: registers in order, unregisters in reverse
+register, unregister = bpy.utils.register_classes_factory(classes)

@@ -215,14 +215,8 @@ class ARTDEF_OT_name_bones(bpy.types.Operator):
 classes = (ARTDEF_OT_name_bones,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+# Blender's own helper: registers in order, unregisters in reverse
+register, unregister = bpy.utils.register_classes_factory(classes)
 
 
 __all__ = ["tree_order", "name_bones", "rename_bones", "source_names", "tree_names"]

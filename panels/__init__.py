@@ -255,11 +255,5 @@ def _draw_link_stats(layout, st):
 classes = (ARTDEF_PT_main,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+# Blender's own helper: registers in order, unregisters in reverse
+register, unregister = bpy.utils.register_classes_factory(classes)
