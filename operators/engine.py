@@ -88,14 +88,11 @@ class ARTDEF_OT_rotation_only(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        from .export import rig_parts
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
+        from .export import poll_rig
+        parts = poll_rig(cls, context)
+        if parts is None:
             return False
-        mesh, arm = rig_parts(context.active_object)
-        if mesh is None:
-            cls.poll_message_set("Select a fitted mesh or its ArtDef armature")
-            return False
+        arm = parts[1]
         if arm.animation_data is None or arm.animation_data.action is None:
             cls.poll_message_set("The rig has no action (a Green's rig: Finalize it first)")
             return False

@@ -59,6 +59,20 @@ def rig_parts(obj):
     return None, None
 
 
+def poll_rig(cls, context):
+    """The shared ``poll`` of the operators that work on a fitted rig: Object Mode and an
+    active object that is an ArtDef rig's mesh or armature. Returns ``(mesh, armature)``, or
+    ``None`` after setting the poll message."""
+    if context.mode != 'OBJECT':
+        cls.poll_message_set("Switch to Object Mode")
+        return None
+    mesh, arm = rig_parts(context.active_object)
+    if mesh is None:
+        cls.poll_message_set("Select a fitted mesh or its ArtDef armature")
+        return None
+    return mesh, arm
+
+
 def _artdef_shape_keys(mesh_obj):
     return {item.name for item in mesh_obj.artdef.shape_keys}
 
@@ -302,14 +316,7 @@ class ARTDEF_OT_export_rig(bpy.types.Operator, ExportHelper):
 
     @classmethod
     def poll(cls, context):
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
-            return False
-        mesh, _arm = rig_parts(context.active_object)
-        if mesh is None:
-            cls.poll_message_set("Select a fitted mesh or its ArtDef armature")
-            return False
-        return True
+        return poll_rig(cls, context) is not None
 
     def check(self, context):
         self.filename_ext = EXTENSIONS[self.export_format]

@@ -182,14 +182,8 @@ class ARTDEF_OT_name_bones(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        from .export import rig_parts
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
-            return False
-        if rig_parts(context.active_object)[0] is None:
-            cls.poll_message_set("Select a fitted mesh or its ArtDef armature")
-            return False
-        return True
+        from .export import poll_rig
+        return poll_rig(cls, context) is not None
 
     def execute(self, context):
         from .export import rig_parts
