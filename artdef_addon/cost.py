@@ -62,6 +62,11 @@ SWAP_FACTOR = 2.0
 #: a ``--links auto`` search costs about this many fixed-count fits: the re-cut tree's error
 #: curve, at least five whole fits upward (the count and its window) and the drop of non-bones
 AUTO_FITS = 7.0
+#: the search's tree error curve costs about this many fixed-count fits per count tried (a
+#: segmentation and one weight solve each), and a link added to a decomposition
+#: (:func:`linkcount.grow_link`) about this many
+CURVE_FITS_PER_COUNT = 0.04
+GROW_FITS = 0.1
 #: bytes per vertex × link of the refined skin's per-vertex arrays (errors, their order, the
 #: candidate masks, the link statistics), and per vertex of one block of the weight solve
 SKIN_BYTES_PER_VERTEX_LINK = 48.0

@@ -234,7 +234,8 @@ class _FitJob:
     def progress(self, stage, fraction):
         self.stage, self.fraction = stage, float(fraction)
         if stage == "links":
-            self.links_fraction = float(fraction)
+            # the search reports 1 when it has chosen; a fit of that count may follow
+            self.links_fraction = float(fraction) if fraction < 1.0 else None
         if self.cancel.is_set():
             return True
         return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))

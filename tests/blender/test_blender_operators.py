@@ -1559,6 +1559,10 @@ def test_fit_progress_reads_as_words(pkg):
     job.progress("links", 0.5)
     job.progress("merge", 0.2)
     assert job.status_text() == "choosing the link count 50% (merging pieces into links 20%)"
+    # the search reports 1 when it has chosen: a fit of that count that follows shows its own stages
+    job.progress("links", 1.0)
+    job.progress("skin", 0.0)
+    assert job.status_text() == "skin weights" and job.links_fraction is None
 
 
 def test_fast_mesh_access_matches_blender_triangulation(clean_scene, pkg, sample_files):
