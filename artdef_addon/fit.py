@@ -36,7 +36,10 @@ from . import quality as _quality
 from . import swaps as _swaps
 from .metric import worker_count, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
-from .skinning import alternate, blend_weights
+from .skinning import alternate, blend_weights, vertex_sample
+
+#: the refined skin's decomposition on a vertex sample, then polished on every vertex
+SKIN_SAMPLE = True
 
 STRATEGIES = ("summed", "paper")  # "auto": paper for Green's scans, summed for tracked ones
 
@@ -554,7 +557,8 @@ def stage_skin(st: FitState) -> None:
     """
     x0, faces = st.scan.vertices, st.scan.faces
     if st.skin == "refined":
-        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t)
+        rows = vertex_sample(faces, st.labels, x0.shape[0]) if SKIN_SAMPLE else None
+        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t, rows=rows)
     else:
         st.Rs = st.ts = None
         st.weights = blend_weights(x0, faces, st.labels, st.n_links)
