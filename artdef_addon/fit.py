@@ -36,7 +36,7 @@ from . import quality as _quality
 from . import swaps as _swaps
 from .metric import worker_count, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
-from .skinning import alternate, blend_weights, vertex_sample
+from .skinning import alternate, blend_weights, field_sample, vertex_sample
 
 #: the refined skin's decomposition on a vertex sample, then polished on every vertex
 SKIN_SAMPLE = True
@@ -533,8 +533,11 @@ def stage_relabel(st: FitState) -> None:
     st.swaps = 0
     if not (_merge.DOMINANT_RELABEL and scan.kind != "greens" and L > 1 and P > 0):
         return
-    new, st.swaps = _merge.dominant_labels(scan.vertices, st.fields, scan.faces, st.labels, st.R, st.t,
-                                           units=seg.valid[seg.unit_tri])
+    # only the labels leave this stage: its decompositions may run on a sample of the fields
+    fsel = field_sample(st.fields) if _merge.SAMPLE else None
+    pick = slice(None) if fsel is None else fsel
+    new, st.swaps = _merge.dominant_labels(scan.vertices, st.fields[pick], scan.faces, st.labels, st.R[pick],
+                                           st.t[pick], units=seg.valid[seg.unit_tri])
     if np.any(new != st.labels):
         st.labels = new
         if st.motion != "lsq":
@@ -684,6 +687,10 @@ def stage_residuals(st: FitState) -> None:
     art_err = np.zeros(P)
     tot_err = np.zeros(P)
     link_res = np.zeros((P, L))
+    # each link's own vertices as one (vertex, link) list: the links' rigid residuals in one pass a field
+    pl = np.concatenate([np.full(len(v), l) for l, v in enumerate(st.link_vids)]).astype(np.int64)
+    pv = np.concatenate(st.link_vids).astype(np.int64)
+    per_link = np.maximum(np.bincount(pl, minlength=L), 1)
     for i in range(P):
         x1 = x0 + fields[i]
         art = _model.skin(weights, st.Rf[i], st.tf[i], x0)
@@ -692,10 +699,8 @@ def stage_residuals(st: FitState) -> None:
         art_err[i] = np.sum((art - x1) ** 2)
         tot_err[i] = np.sum((back - x1) ** 2)
         # rigid-motion residual of each link's own motion over its vertices (fit quality)
-        for l in range(L):
-            vid = st.link_vids[l]
-            d = x0[vid] @ st.Ro[i, l].T + st.to[i, l] - x1[vid]
-            link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
+        d = np.einsum("nij,nj->ni", st.Ro[i][pl], x0[pv]) + st.to[i][pl] - x1[pv]
+        link_res[i] = np.sqrt(np.bincount(pl, np.einsum("ni,ni->n", d, d), minlength=L) / per_link)
     st.residual, st.link_residuals = residual, link_res
     st.rms_articulation = float(np.sqrt(art_err.sum() / (P * N)))
     st.rms_total = float(np.sqrt(tot_err.sum() / (P * N)))

@@ -639,3 +639,33 @@ def full_skin(vertices, fields, faces, labels, R, t, radius=SKIN_RADIUS, details
         w_init[rows] = w_rows
     return _refine(vertices, fields, faces, labels, R, t, cand=cand, radius=radius, details=details,
                    w_init=w_init, **kw)
+
+
+#: fields the relabelling's decompositions use at most (:func:`field_sample`): a long capture's
+#: consecutive frames repeat each other, and a decomposition's cost is linear in the fields. Only
+#: the relabelling's labels leave it; the refined skin uses every field (on dembones_bone's 400
+#: frames, 48 sampled fields for its first rounds left 0.55 % error instead of 0.47 %)
+SAMPLE_FIELDS = 64
+
+
+def field_sample(fields: np.ndarray, size: int | None = None, rows: np.ndarray | None = None):
+    """Sorted field ids (K,) spread over the poses, or None when the scan has at most ``size`` fields.
+
+    Farthest-point sampling in displacement space (on the vertices ``rows``, default all): the field
+    that moves the object most, then repeatedly the field farthest from every field chosen, so that
+    the extreme poses that decide a link's motion and its joints are kept while near-repeats of them
+    (a long capture's consecutive frames) are not. ``fields (P, N, 3)``."""
+    size = SAMPLE_FIELDS if size is None else size
+    P = fields.shape[0]
+    if P <= size:
+        return None
+    D = (fields if rows is None else fields[:, rows]).reshape(P, -1)
+    sq = np.einsum("pi,pi->p", D, D)
+    pick = [int(np.argmax(sq))]
+    dist = np.full(P, np.inf)
+    for _ in range(size - 1):       # K steps of one (P,)-vector each, not a loop over data
+        d = D @ D[pick[-1]]
+        dist = np.minimum(dist, sq - 2 * d + sq[pick[-1]])
+        dist[pick] = -np.inf
+        pick.append(int(np.argmax(dist)))
+    return np.sort(np.array(pick))
