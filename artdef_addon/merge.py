@@ -362,7 +362,8 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
 
     # a rough skin is enough for the argmax: fewer rounds than the final refined skin
     if SWAP_LINKS and x0.shape[0] * fields.shape[0] <= SWAP_BUDGET:
-        w, R, t, labels, swaps, e = swap_links(x0, fields, faces, labels, R, t, units=units, error=True, rows=rows)
+        w, R, t, labels, swaps, e, rows = swap_links(x0, fields, faces, labels, R, t, units=units, error=True,
+                                                     rows=rows)
     else:
         swaps = None if SWAP_LINKS and k > 2 else 0   # None: skipped, the scan is above the budget
         w, R, t, e = decompose(labels, R, t)
