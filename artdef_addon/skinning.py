@@ -265,7 +265,9 @@ class _Flat:
 
 def _gram_links(A: np.ndarray) -> np.ndarray:
     """G[a, b] = Σ_p A_aᵀ A_b (L, L, 4, 4): Σ_p (A_a x̃)·(A_b x̃) = x̃ᵀ G[a, b] x̃ for every vertex."""
-    return np.einsum("paij,pbik->abjk", A, A, optimize=True)
+    P, L = A.shape[:2]
+    Af = A.transpose(0, 2, 1, 3).reshape(P * 3, L * 4)                  # [(p, i), (l, j)]
+    return (Af.T @ Af).reshape(L, 4, L, 4).transpose(0, 2, 1, 3)
 
 
 def _pair_quadratic(xh: np.ndarray, G: np.ndarray, cols: np.ndarray) -> np.ndarray:
