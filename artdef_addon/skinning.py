@@ -50,19 +50,21 @@ def blend_weights(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n
 def _kkt_solve(Q, q, P):
     """Minimiser of wᵀQw − 2qᵀw subject to Σw = 1 and w = 0 off the rows' sets ``P`` (B, m)."""
     B, m = q.shape
-    K = np.zeros((B, m + 1, m + 1))
-    both = P[:, :, None] & P[:, None, :]
-    K[:, :m, :m] = np.where(both, 2 * Q, 0.0)
-    K[:, np.arange(m), np.arange(m)] += ~P
-    K[:, :m, m] = P
-    K[:, m, :m] = P
-    rhs = np.zeros((B, m + 1))
-    rhs[:, :m] = np.where(P, 2 * q, 0.0)
-    rhs[:, m] = 1.0
+    Pf = P.astype(np.float64)
+    K = np.empty((B, m + 1, m + 1))
+    K[:, :m, :m] = Q * (2.0 * (Pf[:, :, None] * Pf[:, None, :]))
+    idx = np.arange(m)
+    K[:, idx, idx] += 1.0 - Pf          # w = 0 off the set
+    K[:, :m, m] = Pf
+    K[:, m, :m] = Pf
+    K[:, m, m] = 0.0
+    rhs = np.empty((B, m + 1, 1))
+    rhs[:, :m, 0] = 2.0 * q * Pf
+    rhs[:, m, 0] = 1.0
     try:
-        z = np.linalg.solve(K, rhs[..., None])[..., 0]
+        z = np.linalg.solve(K, rhs)[..., 0]
     except np.linalg.LinAlgError:
-        z = np.einsum("nij,nj->ni", np.linalg.pinv(K), rhs)
+        z = np.einsum("nij,nj->ni", np.linalg.pinv(K), rhs[..., 0])
     return np.where(P, z[:, :m], 0.0)
 
 
