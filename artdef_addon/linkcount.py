@@ -332,8 +332,9 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
     largest Σ e over its corners, with the triangles of its link that share a vertex with it,
     becomes link L, moving with the least-squares rigid motion of those triangles (Kabsch/Arun,
     METHOD §6); the decomposition (:func:`skinning.alternate_scored`, ``swaps.TRIAL_ROUNDS``
-    rounds as a swap trial) then starts from ``w`` (the new link at weight 0) and every face goes
-    to the link of its largest summed weight.
+    rounds as a swap trial, on the relabelling's vertex sample :func:`skinning.vertex_sample`,
+    extended to every vertex by :func:`skinning.full_skin`) then starts from ``w`` (the new link
+    at weight 0) and every face goes to the link of its largest summed weight.
     A seed whose ring would leave its link without a clustered triangle is passed over.
     ``labels (T,)``; ``spread`` ‖X − X̄‖² (the Karni–Gotsman denominator).
 
@@ -365,7 +366,11 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
     R1 = np.concatenate([R, Rr], axis=1)
     t1 = np.concatenate([t, tr], axis=1)
     w0 = np.concatenate([w, np.zeros((w.shape[0], 1))], axis=1)
-    w1, R1, t1, e1 = skinning.alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS, w_init=w0)
+    rows = skinning.vertex_sample(faces, new, x0.shape[0])   # as the relabelling: None on small meshes
+    w1, R1, t1, e1 = skinning.alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS, w_init=w0,
+                                               rows=rows)
+    if rows is not None:
+        w1, e1 = skinning.full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[:2]
     new = _argmax_owned(w1, faces, new, L + 1, units)
     return new, w1, R1, t1, (100.0 * np.sqrt(max(e1, 0.0) / spread) if spread > 0 else 0.0)
 
