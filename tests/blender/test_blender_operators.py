@@ -1544,6 +1544,8 @@ def test_estimate_follows_the_settings(pkg):
     many = plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, links=40)[0].seconds
     auto = plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, links=5, auto=True)[0].seconds
     assert few < many < auto
+    # the search's curve segments every count up to Max Links
+    assert plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, auto=True, max_links=60)[0].seconds > auto
 
 
 def test_fit_progress_reads_as_words(pkg):
