@@ -59,6 +59,7 @@ import numpy as np
 
 from . import cost as _cost
 from . import skinning
+from .blas import single_threaded
 from .model import skin
 
 
@@ -200,7 +201,8 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slo
     search = progress if isinstance(progress, SearchProgress) else SearchProgress(
         progress, _cost.CURVE_FITS_PER_COUNT * max_links + (1.0 + window * _cost.GROW_FITS if whole_fits else 0.0))
     t0 = time.perf_counter()
-    e = articulation_error_curve(seg, max_links, progress=search)
+    with single_threaded():      # thousands of small distance products (see :mod:`blas`)
+        e = articulation_error_curve(seg, max_links, progress=search)
     timings = {"curve": time.perf_counter() - t0}
     floor = max(float(e.min()), 1e-3)
     top = max(float(e[0]), floor)
