@@ -76,6 +76,10 @@ AUTO_WHOLE_FITS = 2.5
 #: a count of the curve, a link grown on a decomposition (:func:`linkcount.grow_link`)
 CURVE_FITS_PER_COUNT = 0.06
 GROW_FITS = 0.15
+#: what any fit adds to the process beyond its arrays (the modules it loads, small temporaries):
+#: with it the estimate is 0.6-1.2 x the measured rise of the peak RSS on the shared sets
+#: (``benchmarks/results/estimate.md``)
+FIT_BASE_BYTES = 8 * 2 ** 20
 #: bytes per vertex × link of the refined skin's per-vertex arrays (errors, their order, the
 #: candidate masks, the link statistics), and per vertex of one block of the weight solve
 SKIN_BYTES_PER_VERTEX_LINK = 48.0
@@ -104,20 +108,20 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
     full = full_memory(triangles, fields, vertices)
     reduced = full > budget or faster_reduced(triangles, fields, budget)
     u = triangles if not reduced else (units or min(triangles, reduced_units(budget, fields)))
-    seg_fields = min(fields, SEGMENT_FIELDS) if strategy == "summed" else fields   # time only
+    seg_fields = min(fields, SEGMENT_FIELDS) if strategy == "summed" else fields   # the segmented fields
     pairs = u * (u - 1) / 2
     linkages = 1 if strategy == "summed" else fields
     seconds = 2 * pairs * seg_fields / PAIRS_PER_SECOND + linkages * pairs * LINKAGE_SECONDS_PER_ENTRY
     if reduced:
         seconds += triangles * seg_fields * REDUCED_SECONDS_PER_TRIANGLE_FIELD  # streamed features, neighbour distances
-        mem = 2 * 8.0 * pairs + FEATURE_BYTES * (u * fields + triangles) + 8.0 * 3 * vertices * fields * 2
+        mem = 2 * 8.0 * pairs + FEATURE_BYTES * (u * seg_fields + triangles) + 8.0 * 3 * vertices * fields * 2
     else:
         mem = full
     if strategy == "summed":
         L = int(links or DEFAULT_LINKS)
         merge = MERGE_SECONDS_PER_UNIT_FIELD * u * seg_fields
         secs, skin_mem = articulation_cost(vertices, fields, L)
-        mem = max(mem, skin_mem + 8.0 * 3 * vertices * fields * 2 + FEATURE_BYTES * u * fields)
+        mem = max(mem, skin_mem + 8.0 * 3 * vertices * fields * 2 + FEATURE_BYTES * u * seg_fields)
         if auto:
             m = int(max_links or 30)
             seconds += m * (merge + CURVE_SECONDS_PER_COUNT) + AUTO_WHOLE_FITS * (merge + secs) \
@@ -128,7 +132,7 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
             seconds += merge + secs
     elif auto:
         seconds *= 2.0          # Green's scans: the tree's curve only, a segmentation a count
-    return Estimate(triangles, fields, u, mem, seconds, reduced)
+    return Estimate(triangles, fields, u, mem + FIT_BASE_BYTES, seconds, reduced)
 
 
 #: most patch representatives the reduced method uses (time grows with their square × fields)
