@@ -349,7 +349,6 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
     Returns ``(labels (T,), w (N, L+1), R (P, L+1, 3, 3), t (P, L+1, 3), error %)``.
     """
     from .joints import lsq_motions
-    from .merge import _argmax_owned
     from .swaps import TRIAL_ROUNDS
     from .model import skin as lbs
     P, L = R.shape[0], R.shape[1]
@@ -379,7 +378,16 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
                                                rows=rows)
     if rows is not None:
         w1, e1 = skinning.full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[:2]
-    new = _argmax_owned(w1, faces, new, L + 1, units)
+    # every face to the link of its largest summed weight; a link left without a clustered triangle
+    # keeps its faces (as the relabelling does)
+    best = w1[faces].sum(axis=1).argmax(axis=1)
+    for _ in range(L + 1):
+        owned = np.bincount(best[units], minlength=L + 1) > 0
+        if owned.all():
+            break
+        keep = ~owned[new]
+        best[keep] = new[keep]
+    new = best
     return new, w1, R1, t1, (100.0 * np.sqrt(max(e1, 0.0) / spread) if spread > 0 else 0.0)
 
 
@@ -402,10 +410,9 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     Returns (k, {count: whole-fit error %}, {count: grown error %}, [(k, "grown"/"whole"), ...]
     the stop and continue decisions)."""
     from .fit import fit
-    from .quality import _frame_spread
     scan = seg.scan
     x0, faces, fields = scan.vertices, scan.faces, scan.fields()
-    spread = _frame_spread(x0, fields)
+    spread = sum(float(np.sum((x0 + f - (x0 + f).mean(axis=0)) ** 2)) for f in fields)   # ‖X − X̄‖², X̄ a frame's centroid
     units = seg.valid[seg.unit_tri]
     start = k
     errors: dict[int, float] = {}

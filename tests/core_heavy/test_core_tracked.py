@@ -139,10 +139,11 @@ def test_grown_links_spare_whole_fits_and_climb_to_the_true_link_count():
     assert k == 11 and decisions[-1] == (11, "explained"), decisions
     assert len(fits) <= 6 and set(whole) == set(fits) and whole[10] > 1.0 > 0.01 > whole[11]
     r = fits[10]
-    from artdef_addon.quality import _frame_spread
+    X = scan.vertices[None] + scan.fields()
+    spread = float(np.sum((X - X.mean(axis=1, keepdims=True)) ** 2))
     labels, w, R, t, err = linkcount.grow_link(scan.vertices, scan.fields(), scan.faces, r.face_labels,
                                                r.weights[:, :10], r.rotations, r.translations,
-                                               seg.valid[seg.unit_tri], _frame_spread(scan.vertices, scan.fields()))
+                                               seg.valid[seg.unit_tri], spread)
     assert w.shape == (scan.n_vertices, 11) and R.shape[1] == 11 and err < 0.1 < 1.0 < whole[10]
     # the new link is one true link (the segment the 10-link fit had merged into a neighbour)
     true_of_new = truth["face_labels"][labels == 10]
