@@ -321,8 +321,8 @@ def _cmd_fit(a) -> int:
         # priced for this link count (or the --links auto search)
         est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
                           links=None if auto else links, auto=auto)
-        print(est.describe() + (" -> reduced method" if est.reduced else "")
-              + (f" (with the link-count search up to {max_links} links)" if auto else ""), flush=True)
+        print(est.describe() + (f" with the link-count search up to {max_links} links" if auto else "")
+              + (" -> reduced method" if est.reduced else ""), flush=True)
     # the link-count search is its own stage: its share done, in tenths (a search can take minutes)
     progress = search_printer() if auto and not a.quiet else None
     result = api.fit(sc, "auto" if auto else links, options, progress)     # sc and options checked above

@@ -228,7 +228,7 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(F, "fit", lambda *a, **k: calls.append(a[1]) or real_fit(*a, **k))
     assert cli.main(["fit", str(path), "--links", "auto", "--max-links", "16", "-o", str(tmp_path / "r.npz")]) == 0
     out = capsys.readouterr().out
-    assert "links auto: chose 11" in out and "(with the link-count search up to 16 links)" in out   # priced
+    assert "links auto: chose 11" in out and "with the link-count search up to 16 links" in out   # priced
     shown = [int(l.split()[-1][:-1]) for l in out.splitlines() if l.startswith("choosing the link count: ")]
     assert shown[0] == 0 and shown[-1] == 100 and shown == sorted(set(shown))   # the search, in tenths
     assert F.load_result(tmp_path / "r.npz").n_links == 11
