@@ -438,7 +438,8 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
         top = start + len(chain) - 1
         search.plan(_cost.GROW_FITS * max(j - top, 0))
         while top < j:
-            g = grow_link(x0, fields, faces, *chain[-1], units, spread) if chain[-1] is not None else None
+            with single_threaded():      # a proxy: its small products need no BLAS threads either
+                g = grow_link(x0, fields, faces, *chain[-1], units, spread) if chain[-1] is not None else None
             top += 1
             grown[top] = grown.get(top - 1, whole(start)) if g is None else float(g[4])
             chain.append(None if g is None else g[:4])
