@@ -49,15 +49,28 @@ def principal_cut(points: np.ndarray) -> np.ndarray:
     return s > np.median(s)
 
 
+def dominant(w: np.ndarray, faces: np.ndarray, labels: np.ndarray, units: np.ndarray) -> np.ndarray:
+    """Each face's link of largest summed skin weight ``w (N, L)`` over its corners; where a link
+    would be left without a face of ``units`` its faces keep their ``labels`` (T,)."""
+    L = w.shape[1]
+    new = w[faces].sum(axis=1).argmax(axis=1)
+    for _ in range(L):
+        owned = np.bincount(new[units], minlength=L) > 0
+        if owned.all():
+            break
+        keep = ~owned[labels]
+        new[keep] = labels[keep]
+    return new
+
+
 def _relabel(x0, fields, faces, labels, w, R, t, e, units):
-    """Faces to the link of largest summed weight, decomposed again, while E falls (see
-    :func:`merge.dominant_labels`). Returns ``(labels, w, R, t, e)``."""
-    from .merge import RELABEL_ROUNDS, _argmax_owned
+    """Faces to the link of largest summed weight, decomposed again, while E falls (as
+    :func:`merge.dominant_labels` does after its swaps). Returns ``(labels, w, R, t, e)``."""
+    from .merge import RELABEL_ROUNDS
     from .skinning import alternate_scored
     from .swaps import TRIAL_ROUNDS
-    L = R.shape[1]
     for _ in range(RELABEL_ROUNDS):
-        new = _argmax_owned(w, faces, labels, L, units)
+        new = dominant(w, faces, labels, units)
         if np.array_equal(new, labels):
             break
         w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w)
