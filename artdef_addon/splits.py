@@ -110,6 +110,9 @@ def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: n
         vert_link[faces.reshape(-1), np.repeat(labels, 3)] = True
         held = cur @ vert_link                                    # (L,) E on each link's vertices
         drops = [int(l) for l in np.argsort(cost)[:DROP_CANDIDATES] if np.isfinite(cost[l])]
+        small = int(np.argmin(np.bincount(labels, minlength=L)))
+        if small not in drops:
+            drops.append(small)
         cands = [int(l) for l in np.argsort(-held)[:SPLIT_CANDIDATES]]
         best = None
         for s in cands:
