@@ -38,7 +38,13 @@ from . import splits as _splits
 from . import swaps as _swaps
 from .metric import worker_count, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
-from .skinning import alternate, blend_weights
+from .skinning import alternate, blend_weights, field_sample, vertex_sample
+
+#: tracked scans with more fields are segmented on this many of them (:func:`skinning.field_sample`)
+SEGMENT_FIELDS = 64
+
+#: the refined skin's decomposition on a vertex sample, then polished on every vertex
+SKIN_SAMPLE = True
 
 STRATEGIES = ("summed", "paper")  # "auto": paper for Green's scans, summed for tracked ones
 
@@ -192,6 +198,12 @@ class Segmenter:
         self.timings = {}
         t0 = time.perf_counter()
         fields = scan.fields()
+        # a tracked scan with many fields is segmented on a spread of them (its consecutive frames
+        # repeat each other); every field's link motions still come from the links' medoid units
+        self.clustered = np.arange(scan.n_fields)
+        if scan.kind != "greens" and SEGMENT_FIELDS and scan.n_fields > SEGMENT_FIELDS:
+            self.clustered = field_sample(fields, SEGMENT_FIELDS,
+                                          rows=np.unique(self.faces[:: max(1, len(self.valid) // 2000)]))
         self.tri_adjacency = clustering.face_adjacency(self.faces)
         Tv = len(self.valid)
         est = _cost.estimate(Tv, scan.n_fields, scan.n_vertices, strategy, budget)
@@ -205,13 +217,14 @@ class Segmenter:
         self.reduced = bool(reduce)
         self.unit_size = None  # triangles per clustered unit (reduced method: patch sizes)
         if not self.reduced:
-            self.features = []
+            self.features = [None] * scan.n_fields
             rest = rest_geometry(x0, self.faces)
-            for p in range(scan.n_fields):
-                _report(progress, "features", p / scan.n_fields)
-                self.features.append(field_features(x0, fields[p], self.faces, rest))
+            for i, p in enumerate(self.clustered):
+                _report(progress, "features", i / len(self.clustered))
+                self.features[p] = field_features(x0, fields[p], self.faces, rest)
             del rest
-            self.weights = _merge.field_weights(self.features)
+            self.weights = np.zeros(scan.n_fields)
+            self.weights[self.clustered] = _merge.field_weights([self.features[p] for p in self.clustered])
             self.unit_of = np.arange(Tv)
             self.unit_tri = np.arange(Tv)
             self.adjacency = self.tri_adjacency
@@ -220,7 +233,7 @@ class Segmenter:
         if scan.kind == "greens":
             self.groups = [[3 * k, 3 * k + 1, 3 * k + 2] for k in range(scan.n_loads)]
         else:
-            self.groups = [[p] for p in range(scan.n_fields)]
+            self.groups = [[int(p)] for p in self.clustered]
         self.timings["features"] = time.perf_counter() - t0
         self._trees = {}
 
@@ -230,6 +243,8 @@ class Segmenter:
         Tv = len(self.valid)
         weights = np.zeros(P)
         rest = rest_geometry(x0, self.faces)
+        clustered = self.clustered
+        Pc = len(clustered)
 
         def neighbours(p):
             f = field_features(x0, fields[p], self.faces, rest)
@@ -243,10 +258,10 @@ class Segmenter:
             from concurrent.futures import ThreadPoolExecutor
             with ThreadPoolExecutor(min(2, worker_count())) as ex:
                 pending = []
-                for p in range(P):
+                for i, p in enumerate(clustered):
                     pending.append(ex.submit(neighbours, p))
                     if len(pending) >= 2:
-                        _report(self.progress, "features", 0.5 * (p - 1) / P)
+                        _report(self.progress, "features", 0.5 * (i - 1) / Pc)
                         yield pending.pop(0).result()
                 for fut in pending:
                     yield fut.result()
@@ -262,11 +277,11 @@ class Segmenter:
         a = a[a[:, 0] != a[:, 1]]
         self.adjacency = np.unique(np.sort(a, axis=1), axis=0)
         del rest
-        self.features = []
+        self.features = [None] * P
         rest = rest_geometry(x0, self.faces[reps])
-        for p in range(P):
-            _report(self.progress, "features", 0.5 + 0.5 * p / P)
-            self.features.append(field_features(x0, fields[p], self.faces[reps], rest))
+        for i, p in enumerate(clustered):
+            _report(self.progress, "features", 0.5 + 0.5 * i / Pc)
+            self.features[p] = field_features(x0, fields[p], self.faces[reps], rest)
         self.notes.append(f"reduced method: {len(reps)} patches of at most {size} triangles "
                           f"(from {Tv} triangles)")
 
@@ -502,11 +517,28 @@ def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields
     R = np.tile(np.eye(3), (P, L, 1, 1))
     t = np.zeros((P, L, 3))
     col = {p: i for i, p in enumerate(used_fields)}
+    rest = None
     for i, p in enumerate(field_idx):
         if p in col:
             m = medoids[:, col[p]]
             R[i] = seg.features[p].R[m]
             t[i] = seg.features[p].t[m]
+        elif seg.features[p] is None and len(used_fields):
+            # a field left out of the clustering (Segmenter.clustered): the motion ν of each link's
+            # medoid unit in the clustered field nearest to it in displacement
+            if rest is None:
+                used = np.asarray(used_fields)
+                U = seg.scan.fields()
+                sel = np.unique(seg.faces[:: max(1, len(seg.valid) // 2000)])
+                D = U[used][:, sel].reshape(len(used), -1)
+                tris = seg.faces[seg.unit_tri]
+                rest = rest_geometry(x0, tris[np.unique(medoids)])
+                where = {u: j for j, u in enumerate(np.unique(medoids))}
+            d = np.sum((D - U[p][sel].reshape(1, -1)) ** 2, axis=1)
+            m = medoids[:, int(np.argmin(d))]
+            f = field_features(x0, fields[i], tris[np.unique(medoids)], rest)
+            idx = np.array([where[u] for u in m])
+            R[i], t[i] = f.R[idx], f.t[idx]
     return R, t
 
 
@@ -533,8 +565,11 @@ def stage_relabel(st: FitState) -> None:
     st.swaps = 0
     if not (_merge.DOMINANT_RELABEL and scan.kind != "greens" and L > 1 and P > 0):
         return
-    new, st.swaps = _merge.dominant_labels(scan.vertices, st.fields, scan.faces, st.labels, st.R, st.t,
-                                           units=seg.valid[seg.unit_tri])
+    # only the labels leave this stage: its decompositions may run on a sample of the fields
+    fsel = field_sample(st.fields) if _merge.SAMPLE else None
+    pick = slice(None) if fsel is None else fsel
+    new, st.swaps = _merge.dominant_labels(scan.vertices, st.fields[pick], scan.faces, st.labels, st.R[pick],
+                                           st.t[pick], units=seg.valid[seg.unit_tri])
     if np.any(new != st.labels):
         st.labels = new
         if st.motion != "lsq":
@@ -557,7 +592,8 @@ def stage_skin(st: FitState) -> None:
     """
     x0, faces = st.scan.vertices, st.scan.faces
     if st.skin == "refined":
-        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t)
+        rows = vertex_sample(faces, st.labels, x0.shape[0]) if SKIN_SAMPLE else None
+        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t, rows=rows)
     else:
         st.Rs = st.ts = None
         st.weights = blend_weights(x0, faces, st.labels, st.n_links)
@@ -708,6 +744,10 @@ def stage_residuals(st: FitState) -> None:
     art_err = np.zeros(P)
     tot_err = np.zeros(P)
     link_res = np.zeros((P, L))
+    # each link's own vertices as one (vertex, link) list: the links' rigid residuals in one pass a field
+    pl = np.concatenate([np.full(len(v), l) for l, v in enumerate(st.link_vids)]).astype(np.int64)
+    pv = np.concatenate(st.link_vids).astype(np.int64)
+    per_link = np.maximum(np.bincount(pl, minlength=L), 1)
     for i in range(P):
         x1 = x0 + fields[i]
         art = _model.skin(weights, st.Rf[i], st.tf[i], x0)
@@ -716,10 +756,8 @@ def stage_residuals(st: FitState) -> None:
         art_err[i] = np.sum((art - x1) ** 2)
         tot_err[i] = np.sum((back - x1) ** 2)
         # rigid-motion residual of each link's own motion over its vertices (fit quality)
-        for l in range(L):
-            vid = st.link_vids[l]
-            d = x0[vid] @ st.Ro[i, l].T + st.to[i, l] - x1[vid]
-            link_res[i, l] = np.sqrt(np.mean(np.sum(d * d, axis=1)))
+        d = np.einsum("nij,nj->ni", st.Ro[i][pl], x0[pv]) + st.to[i][pl] - x1[pv]
+        link_res[i] = np.sqrt(np.bincount(pl, np.einsum("ni,ni->n", d, d), minlength=L) / per_link)
     st.residual, st.link_residuals = residual, link_res
     st.rms_articulation = float(np.sqrt(art_err.sum() / (P * N)))
     st.rms_total = float(np.sqrt(tot_err.sum() / (P * N)))

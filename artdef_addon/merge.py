@@ -307,6 +307,9 @@ DOMINANT_RELABEL = True
 SWAP_LINKS = True
 
 
+#: decompositions of the relabelling on a vertex sample (:func:`skinning.vertex_sample`)
+SAMPLE = True
+
 #: decompositions re-run on the argmax labels at most (see :func:`dominant_labels`)
 RELABEL_ROUNDS = 5
 
@@ -346,22 +349,31 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     ``labels`` (T,) over all faces, ``R`` (P, k, 3, 3), ``t`` (P, k, 3). Returns the new (T,) labels
     and the number of swaps kept (None when the scan is above the swaps' budget).
     """
-    from .skinning import alternate_scored
+    from .skinning import alternate_scored, full_skin, vertex_sample
     from .swaps import SWAP_BUDGET, TRIAL_ROUNDS, swap_links
     k = R.shape[1]
+    rows = vertex_sample(faces, labels, x0.shape[0]) if SAMPLE else None
+
+    def decompose(labels, R, t, **kw):
+        w, R, t, e = alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS, rows=rows, **kw)
+        if rows is not None:
+            w = full_skin(x0, fields, faces, labels, R, t, rows=rows, w_rows=w)[0]
+        return w, R, t, e
+
     # a rough skin is enough for the argmax: fewer rounds than the final refined skin
     if SWAP_LINKS and x0.shape[0] * fields.shape[0] <= SWAP_BUDGET:
-        w, R, t, labels, swaps, e = swap_links(x0, fields, faces, labels, R, t, units=units, error=True)
+        w, R, t, labels, swaps, e, rows = swap_links(x0, fields, faces, labels, R, t, units=units, error=True,
+                                                     rows=rows)
     else:
         swaps = None if SWAP_LINKS and k > 2 else 0   # None: skipped, the scan is above the budget
-        w, R, t, e = alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS)
+        w, R, t, e = decompose(labels, R, t)
     new = _argmax_owned(w, faces, labels, k, units)
     # the argmax moves seams, which changes the links' candidate reach: decompose again on the
     # new labels (from the motions just found) while that lowers the error and moves faces
     for _ in range(RELABEL_ROUNDS):
         if np.array_equal(new, labels):
             break
-        w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w)
+        w1, R1, t1, e1 = decompose(new, R, t, w_init=w)
         if not e1 < e:
             break
         labels, w, R, t, e = new, w1, R1, t1, e1

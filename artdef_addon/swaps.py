@@ -73,27 +73,43 @@ def _one_ring(faces, f, labels):
 
 def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
                R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None,
-               max_swaps: int | None = None, candidates: int = 2, seed_links: int = 3, error: bool = False):
+               max_swaps: int | None = None, candidates: int = 2, seed_links: int = 3, error: bool = False,
+               rows: np.ndarray | None = None):
     """Skinning decomposition with link swaps (see module docstring).
 
     ``labels`` (T,) link of every face; ``R`` (P, L, 3, 3), ``t`` (P, L, 3) the links' motions;
     ``units`` the faces that carry the links' robust motions (clustered triangles; default all),
     where seeds are taken. Returns ``(weights (N, L), labels, swaps)``: the decomposition's
     weights and the labels the swaps left (each face's link before the caller re-labels by skin).
-    With ``error`` the decomposition's squared error E is appended.
+    With ``error`` the decomposition's squared error E and the vertex sample are appended. ``rows``
+    (S,): the decompositions run on that vertex sample (:func:`skinning.vertex_sample`; E is the
+    sample's); each trial adds its seed's vertices to it, and the kept one's weights and prices are
+    extended to every vertex (:func:`skinning.full_skin`).
     """
-    from .skinning import alternate_scored
+    from .skinning import alternate_scored, full_skin
     labels = np.array(labels, copy=True)
     L = R.shape[1]
     P = fields.shape[0]
     units = np.arange(len(labels)) if units is None else np.asarray(units)
     max_swaps = L if max_swaps is None else max_swaps
 
-    w, R, t, e, info = alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS, details=True)
-    mean = fields.mean(axis=0)
-    spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
+    def decompose(labels, R, t, rows, **kw):
+        w, R, t, e, *info = alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS,
+                                             details=rows is None, rows=rows, **kw)
+        return w, R, t, e, (info[0] if info else None)
+
+    def extend(labels, R, t, w, rows):
+        w, _, info = full_skin(x0, fields, faces, labels, R, t, details=True, rows=rows, w_rows=w)
+        return w, info
+
+    w, R, t, e, info = decompose(labels, R, t, rows)
+    if rows is not None:
+        w, info = extend(labels, R, t, w, rows)
+    sub = fields if rows is None else fields[:, rows]
+    mean = sub.mean(axis=0)
+    spread = sum(float(np.sum((sub[i] - mean) ** 2)) for i in range(P))
     if e <= EXACT ** 2 * spread:      # the skin already explains the fields: nothing to swap
-        return (w, R, t, labels, 0) + ((e,) if error else ())
+        return (w, R, t, labels, 0) + ((e, rows) if error else ())
     swaps = 0
     tried = set()
     while swaps < max_swaps and L > 2 and P > 0:
@@ -132,14 +148,22 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
             R1, t1 = R.copy(), t.copy()
             Rr, tr = lsq_motions(x0, fields, faces[ring], np.zeros(len(ring), dtype=np.int64), 1, corner_weights=True)
             R1[:, l], t1[:, l] = Rr[:, 0], tr[:, 0]
-            w1, R1, t1, e1, info1 = alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS,
-                                                     details=True, w_init=w, target=(1.0 - MIN_GAIN) * e)
-            if e1 < (1.0 - MIN_GAIN) * e:
+            rows1, base = rows, e
+            if rows is not None:
+                # the new link's seed keeps its vertices in the sample; the current skin's error on
+                # the grown sample is the per-vertex error of its extension to every vertex
+                rows1 = np.union1d(rows, faces[ring].reshape(-1))
+                base = float(cur[rows1].sum())
+            w1, R1, t1, e1, info1 = decompose(new, R1, t1, rows1, w_init=w, target=(1.0 - MIN_GAIN) * base)
+            if e1 < (1.0 - MIN_GAIN) * base:
+                rows = rows1
+                if rows is not None:
+                    w1, info1 = extend(new, R1, t1, w1, rows)
                 labels, w, R, t, e, info = new, w1, R1, t1, e1, info1
                 swaps += 1
                 kept = True
                 break
         if not kept:
             break
-    return (w, R, t, labels, swaps) + ((e,) if error else ())
+    return (w, R, t, labels, swaps) + ((e, rows) if error else ())
 
