@@ -616,8 +616,15 @@ def stage_split(st: FitState) -> None:
             and scan.n_vertices * st.fields.shape[0] <= _swaps.SWAP_BUDGET):
         return
     x0, faces = scan.vertices, scan.faces
-    labels, w, Rs, ts, st.splits = _splits.split_links(x0, st.fields, faces, st.labels, st.weights, st.Rs, st.ts,
-                                                       units=seg.valid[seg.unit_tri])
+    # the trials decide labels only where the scan has many fields: then on a spread of them, and
+    # the skin is decomposed again on every field from the new labels' robust motions
+    fsel = field_sample(st.fields) if _merge.SAMPLE else None
+    if fsel is None:
+        labels, w, Rs, ts, st.splits = _splits.split_links(x0, st.fields, faces, st.labels, st.weights, st.Rs,
+                                                           st.ts, units=seg.valid[seg.unit_tri])
+    else:
+        labels, _, _, _, st.splits = _splits.split_links(x0, st.fields[fsel], faces, st.labels, st.weights,
+                                                         st.Rs[fsel], st.ts[fsel], units=seg.valid[seg.unit_tri])
     if not st.splits:
         return
     st.labels = labels
@@ -625,7 +632,11 @@ def stage_split(st: FitState) -> None:
         st.medoids = _merge.link_medoids([seg.features[p] for p in st.used_fields], seg.weights[st.used_fields],
                                          st.labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
     stage_motions(st)
-    st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, Rs, ts, w_init=w)
+    rows = vertex_sample(faces, st.labels, x0.shape[0]) if SKIN_SAMPLE else None
+    if fsel is None:
+        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, Rs, ts, w_init=w, rows=rows)
+    else:
+        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t, rows=rows)
 
 
 def joint_of(R, t, Rs, ts, a, b, c_ref, diag):

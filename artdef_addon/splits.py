@@ -63,35 +63,41 @@ def dominant(w: np.ndarray, faces: np.ndarray, labels: np.ndarray, units: np.nda
     return new
 
 
-def _relabel(x0, fields, faces, labels, w, R, t, e, units):
+def _relabel(x0, fields, faces, labels, w, R, t, e, units, rows=None):
     """Faces to the link of largest summed weight, decomposed again, while E falls (as
-    :func:`merge.dominant_labels` does after its swaps). Returns ``(labels, w, R, t, e)``."""
+    :func:`merge.dominant_labels` does after its swaps). ``w (N, L)`` every vertex's weights; with
+    ``rows`` the decompositions run on that vertex sample (E is the sample's) and each kept one is
+    extended to every vertex. Returns ``(labels, w, R, t, e)``."""
     from .merge import RELABEL_ROUNDS
-    from .skinning import alternate_scored
+    from .skinning import alternate_scored, full_skin
     from .swaps import TRIAL_ROUNDS
     for _ in range(RELABEL_ROUNDS):
         new = dominant(w, faces, labels, units)
         if np.array_equal(new, labels):
             break
-        w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w)
+        w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w,
+                                          rows=rows)
         if not e1 < e:
             break
+        if rows is not None:
+            w1 = full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[0]
         labels, w, R, t, e = new, w1, R1, t1, e1
     return labels, w, R, t, e
 
 
 def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
                 weights: np.ndarray, R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None,
-                max_splits: int = MAX_SPLITS):
+                max_splits: int = MAX_SPLITS, sample: bool = True):
     """Split links holding two bones (see module docstring), starting from a decomposition.
 
     ``x0 (N, 3)``, ``fields (P, N, 3)``, ``faces (T, 3)``, ``labels (T,)``; ``weights (N, L)``,
     ``R (P, L, 3, 3)``, ``t (P, L, 3)`` the decomposition of those labels (the refined skin);
     ``units`` the faces that carry the links' robust motions (each link must keep one; default
-    all). Returns ``(labels (T,), weights, R, t, splits)``: unchanged inputs and 0 when no split
-    lowered the error by ``MIN_GAIN``.
+    all). With ``sample`` the trials decompose on a vertex sample (:func:`skinning.vertex_sample`,
+    where the mesh is large enough for one). Returns ``(labels (T,), weights, R, t, splits)``:
+    unchanged inputs and 0 when no split lowered the error by ``MIN_GAIN``.
     """
-    from .skinning import alternate_scored
+    from .skinning import alternate_scored, full_skin, vertex_sample
     from .swaps import EXACT, TRIAL_ROUNDS, removal_costs
     labels = np.array(labels, copy=True)
     L = R.shape[1]
@@ -103,9 +109,13 @@ def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: n
                                         w_init=weights)
     mean = fields.mean(axis=0)
     spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
+    # the trials decompose on a vertex sample where the mesh is large (as the relabelling does),
+    # compared with the current skin's error on the same vertices
+    rows = vertex_sample(faces, labels, x0.shape[0]) if sample else None
     splits = 0
     while splits < max_splits and e > EXACT ** 2 * spread:
         cost, cur = removal_costs(info, L)
+        base = e if rows is None else float(cur[rows].sum())
         vert_link = np.zeros((x0.shape[0], L), dtype=bool)
         vert_link[faces.reshape(-1), np.repeat(labels, 3)] = True
         held = cur @ vert_link                                    # (L,) E on each link's vertices
@@ -139,15 +149,17 @@ def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: n
                     own = faces[new == l]
                     Rr, tr = lsq_motions(x0, fields, own, np.zeros(len(own), dtype=np.int64), 1, corner_weights=True)
                     R1[:, l], t1[:, l] = Rr[:, 0], tr[:, 0]
-                target = (1.0 - MIN_GAIN) * (e if best is None else min(e, best[0]))
+                target = (1.0 - MIN_GAIN) * (base if best is None else min(base, best[0]))
                 trial = alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS, w_init=w,
-                                         target=target)
+                                         target=target, rows=rows)
                 if trial[3] < target:
                     best = (trial[3], new) + tuple(trial[:3])
         if best is None:
             break
         e1, new, w1, R1, t1 = best
-        labels, w, R, t, e = _relabel(x0, fields, faces, new, w1, R1, t1, e1, units)
+        if rows is not None:
+            w1 = full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[0]
+        labels, w, R, t, e = _relabel(x0, fields, faces, new, w1, R1, t1, e1, units, rows=rows)
         splits += 1
         w, R, t, e, info = alternate_scored(x0, fields, faces, labels, R, t, iterations=0, details=True, w_init=w)
     return labels, w, R, t, splits
