@@ -9,6 +9,7 @@ and what ε (Eq. 5) needs; per field the average-linkage tree, §5.2). :func:`fi
 2. ``motions``    link motions: robust medoid or least squares (§6);
 3. ``relabel``    tracked scans: faces to the link dominating their skin, link swaps (METHOD §6);
 4. ``skin``       seam-blended weights, or the refined skin decomposition (§7, METHOD §8);
+   ``split``      tracked scans, refined skin: links holding two bones cut in two (:mod:`splits`);
 5. ``joints``     joint centres (§4, §6), the minimum spanning tree over joint cost, ground /
    world joint;
 6. ``bones``      bone heads, tails and rest frames;
@@ -33,6 +34,7 @@ from . import merge as _merge
 from . import model as _model
 from . import patches as _patches
 from . import quality as _quality
+from . import splits as _splits
 from . import swaps as _swaps
 from .metric import worker_count, field_features, rest_geometry
 from .scan import Scan, ScanError, validate_scan
@@ -473,6 +475,7 @@ class FitState:
     R: np.ndarray | None = None               # (P, L, 3, 3) link rotations
     t: np.ndarray | None = None               # (P, L, 3) link translations
     swaps: int | None = 0                     # link swaps made (None: over budget, skipped)
+    splits: int = 0                           # links split in two (the split stage)
     # skin
     weights: np.ndarray | None = None         # (N, L) skin weights
     Rs: np.ndarray | None = None              # (P, L, 3, 3) the refined skin's motions (None: seam)
@@ -594,6 +597,46 @@ def stage_skin(st: FitState) -> None:
     else:
         st.Rs = st.ts = None
         st.weights = blend_weights(x0, faces, st.labels, st.n_links)
+
+
+def stage_split(st: FitState) -> None:
+    """split (issue 19, an addition for tracked scans with the refined skin): links holding two
+    bones are cut in two and the link the skin misses least dropped while the decomposition error
+    falls (:func:`splits.split_links`); then, as after the relabel, the links' robust motions of
+    the new labels and the skin again (from the split's motions). ``labels``, ``R``, ``t``,
+    ``weights``, ``Rs``, ``ts``; ``splits`` counts the kept splits. Scans above the swaps' budget
+    (``swaps.SWAP_BUDGET`` vertex-fields), scans with support vertices and Green's scans are left
+    as they are."""
+    scan, seg, L = st.scan, st.seg, st.n_links
+    st.splits = 0
+    # a scan with support vertices: the decomposition has no world link, so part of its error is the
+    # support's blend that no split can explain (a 4-field rod lost its true partition to a split there)
+    if not (st.skin == "refined" and scan.kind != "greens" and L > 2 and st.fields.shape[0] > 0
+            and scan.support_vertices is None
+            and scan.n_vertices * st.fields.shape[0] <= _swaps.SWAP_BUDGET):
+        return
+    x0, faces = scan.vertices, scan.faces
+    # the trials decide labels only where the scan has many fields: then on a spread of them, and
+    # the skin is decomposed again on every field from the new labels' robust motions
+    fsel = field_sample(st.fields) if _merge.SAMPLE else None
+    if fsel is None:
+        labels, w, Rs, ts, st.splits = _splits.split_links(x0, st.fields, faces, st.labels, st.weights, st.Rs,
+                                                           st.ts, units=seg.valid[seg.unit_tri])
+    else:
+        labels, _, _, _, st.splits = _splits.split_links(x0, st.fields[fsel], faces, st.labels, st.weights,
+                                                         st.Rs[fsel], st.ts[fsel], units=seg.valid[seg.unit_tri])
+    if not st.splits:
+        return
+    st.labels = labels
+    if st.motion != "lsq":
+        st.medoids = _merge.link_medoids([seg.features[p] for p in st.used_fields], seg.weights[st.used_fields],
+                                         st.labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
+    stage_motions(st)
+    rows = vertex_sample(faces, st.labels, x0.shape[0]) if SKIN_SAMPLE else None
+    if fsel is None:
+        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, Rs, ts, w_init=w, rows=rows)
+    else:
+        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t, rows=rows)
 
 
 def joint_of(R, t, Rs, ts, a, b, c_ref, diag):
@@ -742,6 +785,7 @@ STAGES = (
     ("motions", stage_motions),
     ("relabel", stage_relabel),
     ("skin", stage_skin),
+    ("split", stage_split),
     ("joints", stage_joints),
     ("bones", stage_bones),
     ("pose", stage_pose),
@@ -778,6 +822,9 @@ def _result(st: FitState, timings: dict) -> FitResult:
     if st.swaps:
         res.notes.append(f"{st.swaps} link swap(s): links that explained little were re-seeded where the skin "
                          f"fitted worst (tracked scans)")
+    if st.splits:
+        res.notes.append(f"{st.splits} link split(s): a link holding two bones was cut in two and the link the skin "
+                         f"missed least dropped (tracked scans)")
     if scan.kind == "greens":
         res.kappa = np.transpose(st.params, (1, 2, 0)) / scan.probe_load
         loads = np.asarray(st.field_idx) // 3

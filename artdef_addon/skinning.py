@@ -605,7 +605,7 @@ SAMPLE_SHARE = 0.5
 
 
 def vertex_sample(faces: np.ndarray, labels: np.ndarray, n_vertices: int, size: int | None = None,
-                  per_link: int | None = None, seed: int = 0):
+                  per_link: int | None = None, seed: int = 0, share: float | None = None):
     """Sorted vertex ids (S,) to solve skin decompositions on, or None when the sample would not be
     much smaller than the mesh (S > :data:`SAMPLE_SHARE` · N).
 
@@ -630,7 +630,7 @@ def vertex_sample(faces: np.ndarray, labels: np.ndarray, n_vertices: int, size: 
     rank = np.arange(pl.size) - np.searchsorted(pl, pl, side="left")
     pick[pv[rank < per_link]] = True
     rows = np.flatnonzero(pick)
-    return rows if rows.size <= SAMPLE_SHARE * N else None
+    return rows if rows.size <= (SAMPLE_SHARE if share is None else share) * N else None
 
 
 def full_skin(vertices, fields, faces, labels, R, t, radius=SKIN_RADIUS, details=False, rows=None,

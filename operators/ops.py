@@ -193,6 +193,7 @@ _STAGES = {
     "motions": ("link motions", False),
     "relabel": ("relabelling faces by their skin", False),
     "skin": ("skin weights", False),
+    "split": ("splitting links that hold two bones", False),
     "joints": ("joints and tree", False),
     "bones": ("bone frames", False),
     "pose": ("pose parameters", False),

@@ -1,0 +1,169 @@
+"""Split links that hold two bones: cut a link in two, drop the link the skin misses least.
+
+An addition to the paper for tracked scans (issue 19, docs/metrics.md "Every true joint"). With a
+fixed link count the greedy merge of §5.2 and the swaps of :mod:`swaps` can end with two short,
+fully blended bones (two finger segments) in one link while another bone holds two links. No
+triangle of such a finger moves rigidly with one bone, so its own-motion residual does not single
+it out (blended seams give every finger link about the same one), and the decomposition explains
+the merged pair's vertices nearly as well with blended motions: the error per link points at it
+only among a few. The decomposition error E (:func:`skinning.alternate_scored`) of the whole
+rig does tell: on the rigged models it falls to a third to a half when the pair is cut.
+
+A split trial
+
+1. takes one of the ``SPLIT_CANDIDATES`` links whose vertices hold most of E and cuts its faces in two at the
+   median of their centroids along the link's principal axis (a chain of two segments is cut near
+   their joint; the decomposition and the relabelling below move the seam to where the skin puts it);
+2. drops one of the ``DROP_CANDIDATES`` links cheapest to remove (:func:`swaps.removal_costs`), its
+   faces going to their best other candidate link, and gives its index to the cut's far half;
+3. starts both halves from the least-squares motions of their faces (Kabsch/Arun, METHOD §6) and
+   runs ``swaps.TRIAL_ROUNDS`` rounds of the decomposition.
+
+The best trial of a round is kept when it lowers E by at least ``MIN_GAIN``; the faces then go to
+the link dominating their skin while that lowers E (as :func:`merge.dominant_labels` does), and the
+next round starts from there. The link count never changes and E falls at every kept split.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .joints import lsq_motions
+
+#: links tried for a cut per round: those whose vertices hold most of the decomposition error
+SPLIT_CANDIDATES = 4
+#: links tried for dropping per round: those cheapest to remove (:func:`swaps.removal_costs`)
+DROP_CANDIDATES = 2
+#: a split is kept when it lowers the decomposition error by at least this fraction
+MIN_GAIN = 0.05
+#: the trials' vertex sample is used up to this share of the mesh (wider than the relabelling's:
+#: on RobotExpressive's fresh poses, seeds 5-13, the sampled split trials found every joint where
+#: the whole mesh missed one on seed 5)
+SAMPLE_SHARE = 0.8
+#: rounds of splits at most (each keeps one)
+MAX_SPLITS = 4
+
+
+def principal_cut(points: np.ndarray) -> np.ndarray:
+    """Cut points ``(n, 3)`` in two at the median of their projections on the principal axis;
+    returns the far half as a (n,) bool mask (empty for fewer than two points)."""
+    if len(points) < 2:
+        return np.zeros(len(points), dtype=bool)
+    q = points - points.mean(axis=0)
+    s = q @ np.linalg.svd(q, full_matrices=False)[2][0]
+    return s > np.median(s)
+
+
+def dominant(w: np.ndarray, faces: np.ndarray, labels: np.ndarray, units: np.ndarray) -> np.ndarray:
+    """Each face's link of largest summed skin weight ``w (N, L)`` over its corners; where a link
+    would be left without a face of ``units`` its faces keep their ``labels`` (T,)."""
+    L = w.shape[1]
+    new = w[faces].sum(axis=1).argmax(axis=1)
+    for _ in range(L):
+        owned = np.bincount(new[units], minlength=L) > 0
+        if owned.all():
+            break
+        keep = ~owned[labels]
+        new[keep] = labels[keep]
+    return new
+
+
+def _relabel(x0, fields, faces, labels, w, R, t, e, units, rows=None):
+    """Faces to the link of largest summed weight, decomposed again, while E falls (as
+    :func:`merge.dominant_labels` does after its swaps). ``w (N, L)`` every vertex's weights; with
+    ``rows`` the decompositions run on that vertex sample (E is the sample's) and each kept one is
+    extended to every vertex. Returns ``(labels, w, R, t, e)``."""
+    from .merge import RELABEL_ROUNDS
+    from .skinning import alternate_scored, full_skin
+    from .swaps import TRIAL_ROUNDS
+    for _ in range(RELABEL_ROUNDS):
+        new = dominant(w, faces, labels, units)
+        if np.array_equal(new, labels):
+            break
+        w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w,
+                                          rows=rows)
+        if not e1 < e:
+            break
+        if rows is not None:
+            w1 = full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[0]
+        labels, w, R, t, e = new, w1, R1, t1, e1
+    return labels, w, R, t, e
+
+
+def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
+                weights: np.ndarray, R: np.ndarray, t: np.ndarray, units: np.ndarray | None = None,
+                max_splits: int = MAX_SPLITS, sample: bool = True):
+    """Split links holding two bones (see module docstring), starting from a decomposition.
+
+    ``x0 (N, 3)``, ``fields (P, N, 3)``, ``faces (T, 3)``, ``labels (T,)``; ``weights (N, L)``,
+    ``R (P, L, 3, 3)``, ``t (P, L, 3)`` the decomposition of those labels (the refined skin);
+    ``units`` the faces that carry the links' robust motions (each link must keep one; default
+    all). With ``sample`` the trials decompose on a vertex sample (:func:`skinning.vertex_sample`,
+    where the mesh is large enough for one). Returns ``(labels (T,), weights, R, t, splits)``:
+    unchanged inputs and 0 when no split lowered the error by ``MIN_GAIN``.
+    """
+    from .skinning import alternate_scored, full_skin, vertex_sample
+    from .swaps import EXACT, TRIAL_ROUNDS, removal_costs
+    labels = np.array(labels, copy=True)
+    L = R.shape[1]
+    P = fields.shape[0]
+    units = np.arange(len(labels)) if units is None else np.asarray(units)
+    if L < 3 or P == 0:
+        return labels, weights, R, t, 0
+    w, R, t, e, info = alternate_scored(x0, fields, faces, labels, R, t, iterations=0, details=True,
+                                        w_init=weights)
+    mean = fields.mean(axis=0)
+    spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
+    # the trials decompose on a vertex sample where the mesh is large (as the relabelling does),
+    # compared with the current skin's error on the same vertices
+    rows = vertex_sample(faces, labels, x0.shape[0], share=SAMPLE_SHARE) if sample else None
+    splits = 0
+    while splits < max_splits and e > EXACT ** 2 * spread:
+        cost, cur = removal_costs(info, L)
+        base = e if rows is None else float(cur[rows].sum())
+        vert_link = np.zeros((x0.shape[0], L), dtype=bool)
+        vert_link[faces.reshape(-1), np.repeat(labels, 3)] = True
+        held = cur @ vert_link                                    # (L,) E on each link's vertices
+        drops = [int(l) for l in np.argsort(cost)[:DROP_CANDIDATES] if np.isfinite(cost[l])]
+        small = int(np.argmin(np.bincount(labels, minlength=L)))
+        if small not in drops:
+            drops.append(small)
+        cands = [int(l) for l in np.argsort(-held)[:SPLIT_CANDIDATES]]
+        best = None
+        for s in cands:
+            for d in drops:
+                if d == s:
+                    continue
+                new = labels.copy()
+                mine = np.flatnonzero(labels == d)
+                ferr = info["err"][:L][:, faces[mine]].sum(axis=2)    # (L, n) summed over corners
+                ferr[d] = np.inf
+                pick = np.argmin(ferr, axis=0)
+                lost = ~np.isfinite(ferr.min(axis=0))
+                pick[lost] = s if s != d else pick[lost]
+                new[mine] = pick
+                part = np.flatnonzero(new == s)
+                far = principal_cut(x0[faces[part]].mean(axis=1))
+                if far.sum() == 0 or far.sum() == len(part):
+                    continue
+                new[part[far]] = d
+                if np.any(np.bincount(new[units], minlength=L) == 0):
+                    continue
+                R1, t1 = R.copy(), t.copy()
+                for l in (s, d):
+                    own = faces[new == l]
+                    Rr, tr = lsq_motions(x0, fields, own, np.zeros(len(own), dtype=np.int64), 1, corner_weights=True)
+                    R1[:, l], t1[:, l] = Rr[:, 0], tr[:, 0]
+                target = (1.0 - MIN_GAIN) * (base if best is None else min(base, best[0]))
+                trial = alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS, w_init=w,
+                                         target=target, rows=rows)
+                if trial[3] < target:
+                    best = (trial[3], new) + tuple(trial[:3])
+        if best is None:
+            break
+        e1, new, w1, R1, t1 = best
+        if rows is not None:
+            w1 = full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[0]
+        labels, w, R, t, e = _relabel(x0, fields, faces, new, w1, R1, t1, e1, units, rows=rows)
+        splits += 1
+        w, R, t, e, info = alternate_scored(x0, fields, faces, labels, R, t, iterations=0, details=True, w_init=w)
+    return labels, w, R, t, splits
