@@ -137,8 +137,8 @@ class SearchProgress:
 
 #: where each stage of a fit starts, as a fraction of the fit's time (tracked scans: the relabelling's
 #: decompositions are most of it, the refined skin most of the rest)
-_FIT_STAGE_AT = {"segment": 0.0, "motions": 0.1, "relabel": 0.1, "skin": 0.7, "joints": 0.95, "bones": 0.96,
-                 "pose": 0.97, "residuals": 0.97, "done": 1.0}
+_FIT_STAGE_AT = {"segment": 0.0, "motions": 0.1, "relabel": 0.1, "skin": 0.6, "split": 0.75, "joints": 0.95,
+                 "bones": 0.96, "pose": 0.97, "residuals": 0.97, "done": 1.0}
 
 
 def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
