@@ -188,9 +188,8 @@ WHOLE_FIT_SLOPE = 2.0
 #: bar at 29 links, whole fits 0.82 x, so the rule continues; the stops kept were 1.9-2.7 x)
 GROWN_MARGIN = 1.75
 #: whole-fit error (percent) at which nothing is left to explain: the search stops, as
-#: :func:`_whole_fits_upward` does. (A floor of 0.01 % would stop the rigid sets earlier and, with
-#: main's split stage, pick the Fox's fresh poses at 22 and RobotExpressive at 37 — nearer the
-#: truth, but not the whole-fit rule's counts: benchmarks/results/links_auto.md.)
+#: :func:`_whole_fits_upward` does (a floor of 0.01 % would spare the rigid sets their window's
+#: whole fits, but is not the whole-fit rule)
 EXPLAINED = 1e-9
 
 
