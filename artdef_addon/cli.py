@@ -140,6 +140,22 @@ def _cmd_sample(a) -> int:
     return 0
 
 
+def search_printer(out=None):
+    """A ``progress(stage, fraction)`` callback that prints the link-count search's stage
+    (``"links"``) as "choosing the link count: 40%" at 0 and every further tenth; other stages
+    are not printed. Never cancels."""
+    last = [-1]
+
+    def progress(stage, fraction):
+        if stage == "links":
+            tenth = int(10 * min(max(float(fraction), 0.0), 1.0) + 1e-9)
+            if tenth > last[0]:
+                last[0] = tenth
+                print(f"choosing the link count: {10 * tenth}%", file=out or sys.stdout, flush=True)
+        return False
+    return progress
+
+
 def _cmd_info(a) -> int:
     from . import files
     d = files.read_npz(a.path)          # BadFile: one line naming the file
@@ -305,8 +321,11 @@ def _cmd_fit(a) -> int:
         # priced for this link count (or the --links auto search)
         est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
                           links=None if auto else links, auto=auto)
-        print(est.describe() + (" -> reduced method" if est.reduced else ""), flush=True)
-    result = api.fit(sc, "auto" if auto else links, options)     # sc and options checked above
+        print(est.describe() + (f" with the link-count search up to {max_links} links" if auto else "")
+              + (" -> reduced method" if est.reduced else ""), flush=True)
+    # the link-count search is its own stage: its share done, in tenths (a search can take minutes)
+    progress = search_printer() if auto and not a.quiet else None
+    result = api.fit(sc, "auto" if auto else links, options, progress)     # sc and options checked above
     timings = {"load": t_load, **result.timings}
     timings["total"] = time.perf_counter() - t_fit
     result.timings = timings

@@ -52,16 +52,34 @@ def full_memory(triangles: int, fields: int, vertices: int) -> float:
 
 #: links assumed by the estimate when the count is not given (or chosen automatically)
 DEFAULT_LINKS = 20
-#: tracked scans: the articulation stage (the relabelling's skin decompositions, link swaps and the
-#: refined skin, each round O(N·L·(P + m²)), see :mod:`skinning`): seconds per vertex × link and
-#: per vertex × link × field, fitted to the shared rigged sets' stage timings
-SKIN_SECONDS_PER_VERTEX_LINK = 3.0e-5
-SKIN_SECONDS_PER_VERTEX_LINK_FIELD = 2.5e-6
-#: the link swaps' trials (scans of at most ``swaps.SWAP_BUDGET`` vertex × fields) multiply that by
-SWAP_FACTOR = 2.0
-#: a ``--links auto`` search costs about this many fixed-count fits: the re-cut tree's error
-#: curve, at least five whole fits upward (the count and its window) and the drop of non-bones
-AUTO_FITS = 7.0
+#: tracked scans: the articulation stage (the relabelling's skin decompositions and link swaps, the
+#: refined skin; since the third speed push on a vertex sample and at most 64 fields, the skin
+#: polished and extended on every vertex and field): seconds per link × vertex × field and per
+#: link (the per-link work of every decomposition round and swap trial). With the segmentation's
+#: merge (below) fitted to the shared rigged sets' fixed-count fits, 2 to 36 links, 96 to 11,666
+#: vertices, 5 to 400 fields: within 0.5-2 x of the measured time (``benchmarks/results/estimate.md``)
+SKIN_SECONDS_PER_LINK_VERTEX_FIELD = 4.5e-7
+SKIN_SECONDS_PER_LINK = 0.019
+#: the segmentation's merge to k links (Λ merge, the links' medoids, the seam refinement): seconds
+#: per clustered unit × field clustered
+MERGE_SECONDS_PER_UNIT_FIELD = 5.5e-6
+#: tracked scans with more fields are segmented on this many (``fit.SEGMENT_FIELDS``)
+SEGMENT_FIELDS = 64
+#: a ``--links auto`` search (:mod:`linkcount`): the tree's error curve segments the scan for every
+#: count up to ``max_links`` (a merge as above plus this many seconds a count), then whole fits
+#: upward: about ``AUTO_WHOLE_FITS`` of them at the chosen count's size (the tree's pick, the chosen
+#: count, and a count ahead when the grown links do not settle the stop; a tree pick far below the
+#: truth costs one more a link, e.g. the Fox 17 -> 23) and ``window`` + 1 grown links
+CURVE_SECONDS_PER_COUNT = 0.05
+AUTO_WHOLE_FITS = 2.5
+#: the same work in fixed-count fits, for the search's progress (:class:`linkcount.SearchProgress`):
+#: a count of the curve, a link grown on a decomposition (:func:`linkcount.grow_link`)
+CURVE_FITS_PER_COUNT = 0.06
+GROW_FITS = 0.15
+#: what any fit adds to the process beyond its arrays (the modules it loads, small temporaries):
+#: with it the estimate is 0.6-1.2 x the measured rise of the peak RSS on the shared sets
+#: (``benchmarks/results/estimate.md``)
+FIT_BASE_BYTES = 8 * 2 ** 20
 #: bytes per vertex × link of the refined skin's per-vertex arrays (errors, their order, the
 #: candidate masks, the link statistics), and per vertex of one block of the weight solve
 SKIN_BYTES_PER_VERTEX_LINK = 48.0
@@ -72,10 +90,8 @@ def articulation_cost(vertices: int, fields: int, links: int) -> tuple[float, fl
     """(seconds, bytes) of a tracked scan's articulation stage (skin decompositions)."""
     from .skinning import SOLVE_BLOCK
     from .swaps import SWAP_BUDGET
-    secs = vertices * links * (SKIN_SECONDS_PER_VERTEX_LINK + SKIN_SECONDS_PER_VERTEX_LINK_FIELD * fields)
+    secs = links * (SKIN_SECONDS_PER_LINK_VERTEX_FIELD * vertices * fields + SKIN_SECONDS_PER_LINK)
     swaps = vertices * fields <= SWAP_BUDGET
-    if swaps:
-        secs *= SWAP_FACTOR
     solve_rows = vertices if swaps else min(vertices, SOLVE_BLOCK)   # swaps keep the whole systems
     mem = SKIN_BYTES_PER_VERTEX_LINK * vertices * (links + 1) + SOLVE_BYTES_PER_VERTEX * solve_rows
     return secs, mem
@@ -83,29 +99,40 @@ def articulation_cost(vertices: int, fields: int, links: int) -> tuple[float, fl
 
 def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed",
              budget: float = DEFAULT_BUDGET, units: int | None = None, links: int | None = None,
-             auto: bool = False) -> Estimate:
+             auto: bool = False, max_links: int | None = None) -> Estimate:
     """Estimate a fit; ``reduced`` says whether the full method would exceed ``budget`` bytes
     (or is chosen for speed, :func:`faster_reduced`). Tracked scans (``strategy`` "summed") add
-    the articulation stage for ``links`` links (default :data:`DEFAULT_LINKS`); ``auto`` prices
-    a ``--links auto`` search (:data:`AUTO_FITS` fits)."""
+    the merge to ``links`` links and the articulation stage (default :data:`DEFAULT_LINKS`);
+    ``auto`` prices a ``--links auto`` search up to ``max_links`` (default 30) instead: the tree's
+    error curve and :data:`AUTO_WHOLE_FITS` whole fits (the fits it keeps are in the memory)."""
     full = full_memory(triangles, fields, vertices)
     reduced = full > budget or faster_reduced(triangles, fields, budget)
     u = triangles if not reduced else (units or min(triangles, reduced_units(budget, fields)))
+    seg_fields = min(fields, SEGMENT_FIELDS) if strategy == "summed" else fields   # the segmented fields
     pairs = u * (u - 1) / 2
     linkages = 1 if strategy == "summed" else fields
-    seconds = 2 * pairs * fields / PAIRS_PER_SECOND + linkages * pairs * LINKAGE_SECONDS_PER_ENTRY
+    seconds = 2 * pairs * seg_fields / PAIRS_PER_SECOND + linkages * pairs * LINKAGE_SECONDS_PER_ENTRY
     if reduced:
-        seconds += triangles * fields * REDUCED_SECONDS_PER_TRIANGLE_FIELD  # streamed features, neighbour distances
-        mem = 2 * 8.0 * pairs + FEATURE_BYTES * (u * fields + triangles) + 8.0 * 3 * vertices * fields * 2
+        seconds += triangles * seg_fields * REDUCED_SECONDS_PER_TRIANGLE_FIELD  # streamed features, neighbour distances
+        mem = 2 * 8.0 * pairs + FEATURE_BYTES * (u * seg_fields + triangles) + 8.0 * 3 * vertices * fields * 2
     else:
         mem = full
     if strategy == "summed":
-        secs, skin_mem = articulation_cost(vertices, fields, int(links or DEFAULT_LINKS))
-        seconds += secs
-        mem = max(mem, skin_mem + 8.0 * 3 * vertices * fields * 2 + FEATURE_BYTES * u * fields)
-    if auto:
-        seconds *= AUTO_FITS
-    return Estimate(triangles, fields, u, mem, seconds, reduced)
+        L = int(links or DEFAULT_LINKS)
+        merge = MERGE_SECONDS_PER_UNIT_FIELD * u * seg_fields
+        secs, skin_mem = articulation_cost(vertices, fields, L)
+        mem = max(mem, skin_mem + 8.0 * 3 * vertices * fields * 2 + FEATURE_BYTES * u * seg_fields)
+        if auto:
+            m = int(max_links or 30)
+            seconds += m * (merge + CURVE_SECONDS_PER_COUNT) + AUTO_WHOLE_FITS * (merge + secs) \
+                + (4 + 1) * GROW_FITS * secs
+            # the whole fits the search keeps (their residuals, skins and motions)
+            mem += (4 + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L)
+        else:
+            seconds += merge + secs
+    elif auto:
+        seconds *= 2.0          # Green's scans: the tree's curve only, a segmentation a count
+    return Estimate(triangles, fields, u, mem + FIT_BASE_BYTES, seconds, reduced)
 
 
 #: most patch representatives the reduced method uses (time grows with their square × fields)

@@ -24,9 +24,14 @@ segmentation for short, blended bones, so its curve flattens before they all hav
 undershoots on rigs with fingers and tail segments. The error of the whole fit (link swaps and
 refined skin, :func:`fit.fit`) instead drops to the data's floor once every bone has its link. So
 from the tree's choice k grows by the same slope rule on the whole fits' errors with
-s = ``WHOLE_FIT_SLOPE`` (one fit per count, the scan's segmenter reused). It only
-adds links; a scan with support vertices keeps the tree's choice (the fit's skin has no ground
-candidate, so a link would be spent on the ground seam).
+s = ``WHOLE_FIT_SLOPE`` (the scan's segmenter reused). It only adds links; a scan with support
+vertices keeps the tree's choice (the fit's skin has no ground candidate, so a link would be
+spent on the ground seam). Each count that may be chosen gets its whole fit, but the counts
+ahead are first priced by links grown one at a time on the first whole fit (:func:`grow_link`,
+Dem Bones' way of adding a bone): when those errors stay well above the slope rule's bar the
+search stops without fitting them; otherwise whole fits decide (:func:`_grown_upward`). The
+chosen count's fit is the one handed back, and at the stop the counts ahead are mostly never
+fitted whole.
 
 Links that are not bones, downward (the same scans). Where the true skin weights are smooth
 (many influences per vertex), the error keeps falling past the true count, because under the
@@ -49,10 +54,13 @@ rigged and CraGL sets): ``benchmarks/results/core_constants.md``; the method: do
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 
+from . import cost as _cost
 from . import skinning
+from .blas import single_threaded
 from .model import skin
 
 
@@ -65,6 +73,10 @@ class LinkChoice:
     tree_links: int = 0      # the re-cut tree's pick, before the whole fits
     upward_links: int = 0    # after the whole fits upward, before links that are not bones are dropped
     result: object = None    # the whole fit at ``links`` (fit.fit's defaults), when one was made
+    timings: dict = dataclasses.field(default_factory=dict)   # seconds: curve, upward, drop
+    whole_errors: dict = dataclasses.field(default_factory=dict)   # {count: whole-fit error %} upward
+    grown_errors: dict = dataclasses.field(default_factory=dict)   # {count: grown error %} (grow_link)
+    decisions: list = dataclasses.field(default_factory=list)      # [(count, how the rule decided)]
 
     def reusable(self, mode: str = "global", motion: str = "robust", skin: str | None = "auto"):
         """The chooser's own fit at the chosen count if it is what ``fit.fit(scan, links, mode,
@@ -75,8 +87,64 @@ class LinkChoice:
         return self.result if getattr(self.result, "skin", None) == "refined" else None
 
 
+class SearchProgress:
+    """The link-count search reported as one stage, ``"links"``, whose fraction only grows, from 0
+    at the start of the tree's error curve to 1 when the count is chosen (the Segmenter's own
+    stages before it and the final fit's after it are reported as usual).
+
+    Work is counted in whole fits (:data:`cost.CURVE_FITS_PER_COUNT` a count of the curve, 1 a
+    whole fit, :data:`cost.GROW_FITS` a link added to a decomposition); the search plans what it
+    knows it will do and extends the plan when it needs more, so the fraction is done / planned,
+    held from falling. ``progress(stage, fraction) -> bool`` as in :func:`fit.fit` (True cancels:
+    :class:`fit.FitCancelled`)."""
+
+    def __init__(self, progress, planned: float):
+        self.progress = progress
+        self.done = 0.0
+        self.planned = float(planned)
+        self.last = 0.0
+
+    def plan(self, more: float) -> None:
+        """At least ``more`` fits' work is still to come."""
+        self.planned = max(self.planned, self.done + more)
+
+    def report(self, extra: float = 0.0, final: bool = False) -> None:
+        if self.progress is None:
+            return
+        frac = 1.0 if final else min(0.99, (self.done + extra) / max(self.planned, 1e-12))
+        self.last = max(self.last, frac)
+        if self.progress("links", self.last):
+            from .fit import FitCancelled
+            raise FitCancelled("cancelled while choosing the link count")
+
+    def step(self, units: float) -> None:
+        self.done += units
+        self.report()
+
+    def fit_callback(self, units: float = 1.0):
+        """A fit's ``progress``: its stages as parts of ``units`` of the search."""
+        if self.progress is None:
+            return None
+
+        def report(stage, frac):
+            at = _FIT_STAGE_AT.get(stage)
+            if at is None:          # the segmentation's merge (fraction of its share)
+                at = 0.1 * min(max(float(frac), 0.0), 1.0)
+            self.report(units * at)
+            return False
+        return report
+
+
+#: where each stage of a fit starts, as a fraction of the fit's time (tracked scans: the relabelling's
+#: decompositions are most of it, the refined skin most of the rest)
+_FIT_STAGE_AT = {"segment": 0.0, "motions": 0.1, "relabel": 0.1, "skin": 0.6, "split": 0.75, "joints": 0.95,
+                 "bones": 0.96, "pose": 0.97, "residuals": 0.97, "done": 1.0}
+
+
 def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
-    """e(k) for k = 1..max_links (see module docstring), percent."""
+    """e(k) for k = 1..max_links (see module docstring), percent. ``progress``: a
+    ``progress(stage, fraction)`` callback (the stage "links", fraction (k − 1)/max_links) or a
+    :class:`SearchProgress` (one step per count)."""
     scan = seg.scan
     fields_all = scan.fields()
     ground = None
@@ -85,7 +153,9 @@ def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
         ground[scan.support_vertices] = True
     out = []
     for k in range(1, max_links + 1):
-        if progress is not None and progress("links", (k - 1) / max_links):
+        if isinstance(progress, SearchProgress):
+            progress.step(_cost.CURVE_FITS_PER_COUNT if k > 1 else 0.0)
+        elif progress is not None and progress("links", (k - 1) / max_links):
             from .fit import FitCancelled
             raise FitCancelled("cancelled while choosing the link count")
         lab, med, used = seg.segment(k)
@@ -105,19 +175,42 @@ def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
             t = np.concatenate([t, np.zeros((len(used), 1, 3))], axis=1)
         err = sum(np.sum((skin(w, R[i], t[i], scan.vertices) - X[i]) ** 2) for i in range(len(used)))
         out.append(100.0 * np.sqrt(err) / den if den > 0 else 0.0)
+    if isinstance(progress, SearchProgress):
+        progress.step(_cost.CURVE_FITS_PER_COUNT)
     return np.array(out)
 
 
 #: log-log slope below which the whole fits' error counts as levelled off (see module docstring)
 WHOLE_FIT_SLOPE = 2.0
+#: the upward search stops on grown links (:func:`_grown_upward`) only when their errors stay above
+#: this many times the bar. A whole fit re-segments, swaps and (since main's split stage) splits
+#: links, so it can end far below the grown error of its count: 0.23-1.2 x on the shared sets
+#: (the Fox's own poses at 23 links: grown 1.92 x the bar, whole fits 0.43 x). At 2.5 the stops
+#: left to the grown links are CesiumMan's own poses (2.66 x, whole fits 2.1 x) and RiggedFigure's
+#: fresh poses (4.3 x, whole fits 1.8 x); every other stop is the whole fits' (links_auto.md)
+GROWN_MARGIN = 2.5
+#: whole-fit error (percent) at which nothing is left to explain: the search stops, as
+#: :func:`_whole_fits_upward` does (a floor of 0.01 % would spare the rigid sets their window's
+#: whole fits, but is not the whole-fit rule)
+EXPLAINED = 1e-9
 
 
 def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slope: float = 0.7,
                  window: int = 4, whole_fits: bool | None = None) -> LinkChoice:
     """Pick the link count for a :class:`fit.Segmenter` (see module docstring). ``whole_fits``
-    (default: for tracked scans without support vertices) continues upward with whole fits."""
+    (default: for tracked scans without support vertices) continues upward with whole fits.
+    ``progress(stage, fraction)``: the search is reported as the stage ``"links"`` (see
+    :class:`SearchProgress`)."""
     max_links = int(max(1, min(max_links, len(seg.valid))))
-    e = articulation_error_curve(seg, max_links, progress=progress)
+    scan = seg.scan
+    if whole_fits is None:
+        whole_fits = scan.kind != "greens" and scan.support_vertices is None
+    search = progress if isinstance(progress, SearchProgress) else SearchProgress(
+        progress, _cost.CURVE_FITS_PER_COUNT * max_links + (1.0 + window * _cost.GROW_FITS if whole_fits else 0.0))
+    t0 = time.perf_counter()
+    with single_threaded():      # thousands of small distance products (see :mod:`blas`)
+        e = articulation_error_curve(seg, max_links, progress=search)
+    timings = {"curve": time.perf_counter() - t0}
     floor = max(float(e.min()), 1e-3)
     top = max(float(e[0]), floor)
     if top <= floor * 1.0001:
@@ -141,25 +234,28 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slo
         else:
             why += f"; beyond it the error falls slower than k^-{slope:g}"
     tree_links = k
-    scan = seg.scan
-    if whole_fits is None:
-        whole_fits = scan.kind != "greens" and scan.support_vertices is None
+    fits = {}
+    k1 = k
+    ef, eg, decisions = {}, {}, []
     if whole_fits:
-        fits = {}
-        k1 = k
+        t0 = time.perf_counter()
         if k < max_links:
-            k1, ef = _whole_fits_upward(seg, k, max_links, window, progress, fits)
+            k1, ef, eg, decisions = _grown_upward(seg, k, max_links, window, search, fits)
             why += f". Whole fits from {k} links: error {ef[k]:.3g}%"
             if k1 > k:
                 why += f", {ef[k1]:.3g}% with {k1}"
             why += f"; beyond it the error falls slower than k^-{WHOLE_FIT_SLOPE:g} over {window} more links"
-        k, steps = _drop_non_bones(seg, k1, fits, progress)
+        timings["upward"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        k, steps = _drop_non_bones(seg, k1, fits, search)
+        timings["drop"] = time.perf_counter() - t0
         if k < k1:
             why += (". Links that are not bones (moving as a blend of their neighbours, or lending their motion "
                     "to blends far beyond their own triangles): " + ", ".join(f"{n} of {j}" for j, n in steps)
                     + f", so {k}")
-    result = fits.get(k) if whole_fits else None
-    return LinkChoice(k, e, tau, f"links auto: chose {k}. {why}", tree_links, k1 if whole_fits else k, result)
+    search.report(final=True)
+    return LinkChoice(k, e, tau, f"links auto: chose {k}. {why}", tree_links, k1, fits.get(k), timings,
+                      ef, eg, decisions)
 
 
 #: blend-to-single squared-error ratio below which a link is interpolating (see module docstring)
@@ -214,24 +310,162 @@ def interpolating_links(x0: np.ndarray, faces: np.ndarray, labels: np.ndarray, R
 
 def _drop_non_bones(seg, k: int, fits: dict, progress=None):
     """From ``k``, while the fit has links that are not bones (:func:`spurious_links`), take that
-    many links off and fit again. Returns (k, [(count, such links), ...])."""
+    many links off and fit again. Returns (k, [(count, such links), ...]). ``progress``: a
+    callback or a :class:`SearchProgress`."""
     from .fit import fit
     scan = seg.scan
+    search = progress if isinstance(progress, SearchProgress) else SearchProgress(progress, 1.0)
     steps = []
     while k > 1:
         if k not in fits:
-            report = None
-            if progress is not None:
-                def report(stage, frac):
-                    return progress("links", min(1.0, frac))
-            fits[k] = fit(scan, k, segmenter=seg, progress=report)
+            search.plan(1.0)
+            fits[k] = fit(scan, k, segmenter=seg, progress=search.fit_callback())
+            search.step(1.0)
         r = fits[k]
         n = int(np.count_nonzero(spurious_links(scan.vertices, scan.faces, r)))
         steps.append((k, n))
         if n == 0:
             break
         k = max(1, k - n)
+        search.plan(1.0)
     return k, steps
+
+
+def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray, w: np.ndarray,
+              R: np.ndarray, t: np.ndarray, units: np.ndarray, spread: float):
+    """One more link where the skin fits worst, and the skin decomposition from there (Dem Bones'
+    way of adding a bone; the seeding of :mod:`swaps`).
+
+    The skin ``w (N, L)`` with motions ``R (P, L, 3, 3)``, ``t (P, L, 3)`` explains vertex v with
+    error e_v = Σ_p ‖Σ_l w_vl (R_l^p x_v + t_l^p) − x_v^p‖². The clustered triangle (``units``) of
+    largest Σ e over its corners, with the triangles of its link that share a vertex with it,
+    becomes link L, moving with the least-squares rigid motion of those triangles (Kabsch/Arun,
+    METHOD §6); the decomposition (:func:`skinning.alternate_scored`, ``swaps.TRIAL_ROUNDS``
+    rounds as a swap trial, on the relabelling's vertex sample :func:`skinning.vertex_sample`,
+    extended to every vertex by :func:`skinning.full_skin`) then starts from ``w`` (the new link
+    at weight 0) and every face goes to the link of its largest summed weight.
+    A seed whose ring would leave its link without a clustered triangle is passed over.
+    ``labels (T,)``; ``spread`` ‖X − X̄‖² (the Karni–Gotsman denominator).
+
+    Returns ``(labels (T,), w (N, L+1), R (P, L+1, 3, 3), t (P, L+1, 3), error %)``.
+    """
+    from .joints import lsq_motions
+    from .swaps import TRIAL_ROUNDS
+    from .model import skin as lbs
+    P, L = R.shape[0], R.shape[1]
+    err_v = np.zeros(x0.shape[0])
+    for p in range(P):
+        d = lbs(w, R[p], t[p], x0) - (x0 + fields[p])
+        err_v += np.einsum("ni,ni->n", d, d)
+    face_err = err_v[faces].sum(axis=1)
+    order = units[np.argsort(-face_err[units], kind="stable")]
+    unit_count = np.bincount(labels[units], minlength=L)
+    new = None
+    for seed in order[:16]:
+        ring = np.flatnonzero(np.isin(faces, faces[seed]).any(axis=1) & (labels == labels[seed]))
+        lost = np.bincount(labels[np.intersect1d(ring, units, assume_unique=True)], minlength=L)
+        if np.all(unit_count - lost > 0):
+            new = labels.copy()
+            new[ring] = L
+            break
+    if new is None:                       # every link is a single ring: nothing to split
+        return None
+    Rr, tr = lsq_motions(x0, fields, faces[ring], np.zeros(len(ring), dtype=np.int64), 1, corner_weights=True)
+    R1 = np.concatenate([R, Rr], axis=1)
+    t1 = np.concatenate([t, tr], axis=1)
+    w0 = np.concatenate([w, np.zeros((w.shape[0], 1))], axis=1)
+    rows = skinning.vertex_sample(faces, new, x0.shape[0])   # as the relabelling: None on small meshes
+    w1, R1, t1, e1 = skinning.alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS, w_init=w0,
+                                               rows=rows)
+    if rows is not None:
+        w1, e1 = skinning.full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[:2]
+    # every face to the link of its largest summed weight; a link left without a clustered triangle
+    # keeps its faces (as the relabelling does)
+    best = w1[faces].sum(axis=1).argmax(axis=1)
+    for _ in range(L + 1):
+        owned = np.bincount(best[units], minlength=L + 1) > 0
+        if owned.all():
+            break
+        keep = ~owned[new]
+        best[keep] = new[keep]
+    new = best
+    return new, w1, R1, t1, (100.0 * np.sqrt(max(e1, 0.0) / spread) if spread > 0 else 0.0)
+
+
+def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgress, fits: dict):
+    """:func:`_whole_fits_upward`'s choice with fewer whole fits.
+
+    Every count that may be chosen (from ``k`` up to the current one) gets its whole fit (kept in
+    ``fits``). At count k the rule asks whether one of the next ``window`` counts has a whole-fit
+    error below ``bar`` = best·(k/(k+window))^s (best: the lowest whole-fit error up to k, s =
+    ``WHOLE_FIT_SLOPE``); :func:`_whole_fits_upward` fits all of them to know. Here the question
+    goes first to links grown one at a time on the first whole fit (:func:`grow_link`, a chain
+    extended as k grows): if the grown errors stay well above the bar (``GROWN_MARGIN`` times it)
+    the search stops at k without fitting the window. Otherwise whole
+    fits decide, k+1 first (it is the next count's own fit), then the others in the order of
+    their grown errors, until one is below the bar (continue: the same decision as
+    :func:`_whole_fits_upward`) or none is (stop). Only a stop on the grown errors can differ
+    from the whole fits' rule (``benchmarks/results/links_auto.md``: the same counts on every
+    shared set).
+
+    Returns (k, {count: whole-fit error %}, {count: grown error %}, [(k, "grown"/"whole"), ...]
+    the stop and continue decisions)."""
+    from .fit import fit
+    scan = seg.scan
+    x0, faces, fields = scan.vertices, scan.faces, scan.fields()
+    spread = sum(float(np.sum((x0 + f - (x0 + f).mean(axis=0)) ** 2)) for f in fields)   # ‖X − X̄‖², X̄ a frame's centroid
+    units = seg.valid[seg.unit_tri]
+    start = k
+    errors: dict[int, float] = {}
+    grown: dict[int, float] = {}
+    decisions = []
+    chain = []
+
+    def whole(j):
+        if j not in errors:
+            if j not in fits:
+                search.plan(1.0)
+                fits[j] = fit(scan, j, segmenter=seg, progress=search.fit_callback())
+                search.step(1.0)
+            e = float(fits[j].articulation_error_percent)
+            errors[j] = e if np.isfinite(e) else 0.0   # undefined (one field): nothing to explain
+        return errors[j]
+
+    def grow_to(j):
+        if not chain:
+            base = fits[start]
+            L = base.rotations.shape[1]
+            chain.append((base.face_labels, base.weights[:, :L], base.rotations, base.translations))
+        top = start + len(chain) - 1
+        search.plan(_cost.GROW_FITS * max(j - top, 0))
+        while top < j:
+            with single_threaded():      # a proxy: its small products need no BLAS threads either
+                g = grow_link(x0, fields, faces, *chain[-1], units, spread) if chain[-1] is not None else None
+            top += 1
+            grown[top] = grown.get(top - 1, whole(start)) if g is None else float(g[4])
+            chain.append(None if g is None else g[:4])
+            search.step(_cost.GROW_FITS)
+
+    whole(start)
+    while k < max_links:
+        j = min(max_links, k + window)
+        best_k = min(whole(i) for i in range(start, k + 1))
+        if best_k <= EXPLAINED:
+            decisions.append((k, "explained"))
+            break
+        bar = best_k * (k / j) ** WHOLE_FIT_SLOPE   # log(best/e)/log(j/k) > s  <=>  e < bar
+        grow_to(j)
+        if min(grown[i] for i in range(k + 1, j + 1)) >= GROWN_MARGIN * bar:
+            decisions.append((k, "grown"))
+            break
+        order = [k + 1] + sorted(range(k + 2, j + 1), key=grown.get)
+        if not any(whole(i) < bar for i in order):
+            decisions.append((k, "whole"))
+            break
+        decisions.append((k, "continue"))
+        k += 1
+    whole(k)
+    return k, errors, grown, decisions
 
 
 def _whole_fits_upward(seg, k: int, max_links: int, window: int, progress=None, fits=None):

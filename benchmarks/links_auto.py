@@ -6,6 +6,14 @@ max(30, 1.5 × true) links, as ``compare_dembones.py`` does, and prints the tree
 re-cut tree's error curve), the pick after the whole fits upward, the final pick (after
 interpolating links are dropped) and its distance from the true count, the seconds and the chooser's reason. Heavy: minutes per character; not a test.
 
+Side by side in one process, each with a new Segmenter: the fixed-count fit at the true count
+(``fit.fit``), then the search; "× fixed" is their time ratio (issue 16: at most 3). The search's
+seconds split into the tree curve, the upward pass and the drop of links that are not bones;
+"stops" says how each upward decision was made (``linkcount._grown_upward``): "grown" when the
+links grown on a whole fit levelled off (no whole fit of the counts ahead), "whole" when whole
+fits did. With ``--verify`` every "grown" stop is checked against the whole fits of the counts
+ahead (the whole-fit rule's own decision).
+
     .venv/bin/python benchmarks/links_auto.py --data ../shared/data [--only Fox,Robot]
 """
 from __future__ import annotations
@@ -28,10 +36,12 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
     ap.add_argument("--only", default="", help="comma-separated substrings of the set names")
+    ap.add_argument("--verify", action="store_true", help="check each stop on grown links with whole fits")
     a = ap.parse_args(argv)
     only = [s for s in a.only.split(",") if s]
-    print("| set | poses | true links | tree rule | whole fits up | links auto | off by | seconds |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    print("| set | poses | true links | tree rule | whole fits up | links auto | off by | fixed fit (s) | links auto (s) "
+          "| × fixed | curve / up / drop (s) | stops |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|")
     for name in SETS:
         if only and not any(o in name for o in only):
             continue
@@ -48,13 +58,24 @@ def main(argv=None):
         for kind, u in kinds:
             scan = S.Scan(d["vertices"], d["faces"], displacements=u)
             t0 = time.perf_counter()
+            F.fit(scan, L, segmenter=F.Segmenter(scan))
+            fixed = time.perf_counter() - t0
+            t0 = time.perf_counter()
             seg = F.Segmenter(scan)
             mx = max(30, int(1.5 * L))
             c = linkcount.choose_links(seg, max_links=mx)
-            tree = c.tree_links
             dt = time.perf_counter() - t0
-            print(f"| {name} | {kind} | {L} | {tree} | {c.upward_links} | {c.links} | {100 * (c.links - L) / L:+.0f} % | {dt:.0f} |",
-                  flush=True)
+            stops = ", ".join(f"{k} {how}" for k, how in c.decisions if how != "continue")
+            if a.verify:
+                for k, how in c.decisions:
+                    if how == "grown":
+                        j = min(mx, k + 4)
+                        bar = min(v for q, v in c.whole_errors.items() if q <= k) * (k / j) ** linkcount.WHOLE_FIT_SLOPE
+                        low = min(float(F.fit(scan, i, segmenter=seg).articulation_error_percent) for i in range(k + 1, j + 1))
+                        stops += " (whole fits agree)" if low >= bar else f" (WHOLE FITS DISAGREE: {low:.4g} < {bar:.4g})"
+            parts = " / ".join(f"{c.timings.get(p, 0.0):.1f}" for p in ("curve", "upward", "drop"))
+            print(f"| {name} | {kind} | {L} | {c.tree_links} | {c.upward_links} | {c.links} | {100 * (c.links - L) / L:+.0f} % "
+                  f"| {fixed:.1f} | {dt:.1f} | {dt / fixed:.1f} | {parts} | {stops} |", flush=True)
             print(f"<!-- {c.reason} -->", flush=True)
 
 

@@ -27,13 +27,15 @@ PROGRESS_HOOKS = []
 LAST_RESULTS = {}
 
 def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0, links=None,
-                auto=False):
+                auto=False, max_links=None):
     """What a fit with these settings will do, from counts only (the core's :func:`api.plan`):
     ``(estimate, reduce_arg)``. ``links``: the link count the fit will use (its skin
     decompositions grow with it; None: the core's default), ``auto``: Auto Links (the
-    link-count search, priced as the core prices it)."""
-    return _api.plan(triangles, fields, vertices, kind,
-                     FitOptions(reduce=reduce.lower(), memory_budget=float(budget_gb)),
+    link-count search up to ``max_links``, priced as the core prices it)."""
+    options = FitOptions(reduce=reduce.lower(), memory_budget=float(budget_gb))
+    if auto and max_links is not None:
+        options = options.replace(max_links=int(max_links))
+    return _api.plan(triangles, fields, vertices, kind, options,
                      links=None if auto or links is None else int(links), auto=bool(auto))
 
 
@@ -235,7 +237,8 @@ class _FitJob:
     def progress(self, stage, fraction):
         self.stage, self.fraction = stage, float(fraction)
         if stage == "links":
-            self.links_fraction = float(fraction)
+            # the search reports 1 when it has chosen; a fit of that count may follow
+            self.links_fraction = float(fraction) if fraction < 1.0 else None
         if self.cancel.is_set():
             return True
         return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))

@@ -195,7 +195,8 @@ def _draw_estimate(layout, mesh, st):
     info = io.scan_info(mesh)
     auto = bool(st.auto_links)
     est, _ = ops.method_plan(len(mesh.loop_triangles), info["fields"], len(mesh.vertices),
-                             info["kind"], st.reduce, st.memory_budget, links=st.links, auto=auto)
+                             info["kind"], st.reduce, st.memory_budget, links=st.links, auto=auto,
+                             max_links=st.max_links)
     col = layout.column(align=True)
     col.scale_y = 0.8
     col.label(text=f"Estimate: about {_gb(est.memory_bytes)} GB, "

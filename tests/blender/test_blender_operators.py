@@ -1544,6 +1544,8 @@ def test_estimate_follows_the_settings(pkg):
     many = plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, links=40)[0].seconds
     auto = plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, links=5, auto=True)[0].seconds
     assert few < many < auto
+    # the search's curve segments every count up to Max Links
+    assert plan(4672, 20, 2338, "tracked", 'AUTO', 2.0, auto=True, max_links=60)[0].seconds > auto
 
 
 def test_fit_progress_reads_as_words(pkg):
@@ -1559,6 +1561,10 @@ def test_fit_progress_reads_as_words(pkg):
     job.progress("links", 0.5)
     job.progress("merge", 0.2)
     assert job.status_text() == "choosing the link count 50% (merging pieces into links 20%)"
+    # the search reports 1 when it has chosen: a fit of that count that follows shows its own stages
+    job.progress("links", 1.0)
+    job.progress("skin", 0.0)
+    assert job.status_text() == "skin weights" and job.links_fraction is None
 
 
 def test_fast_mesh_access_matches_blender_triangulation(clean_scene, pkg, sample_files):

@@ -25,8 +25,11 @@ def test_reduced_method_is_chosen_for_speed_and_the_estimate_prices_the_fit():
     # tracked scans pay the articulation stage (more with more links); links auto several fits
     few, many = cost.estimate(4672, 20, 2338, links=5), cost.estimate(4672, 20, 2338, links=30)
     assert many.seconds > few.seconds
+    # links auto: the tree's curve (a segmentation a count, up to max_links) and a few whole fits
     auto = cost.estimate(4672, 20, 2338, links=30, auto=True)
-    assert np.isclose(auto.seconds, cost.AUTO_FITS * many.seconds)
+    assert auto.seconds > cost.AUTO_WHOLE_FITS * many.seconds
+    assert cost.estimate(4672, 20, 2338, links=30, auto=True, max_links=60).seconds > auto.seconds
+    assert auto.memory_bytes > many.memory_bytes     # the whole fits it keeps
     greens = cost.estimate(4672, 20, 2338, strategy="paper", links=30)
     assert greens.seconds < many.seconds
 

@@ -126,6 +126,30 @@ def test_whole_fits_climb_to_the_true_link_count():
     assert errors[10] > 1.0 > 0.01 > errors[11]
 
 
+def test_grown_links_spare_whole_fits_and_climb_to_the_true_link_count():
+    """The upward search with grown links (linkcount._grown_upward) makes the whole fits' choice
+    from 8 links (11, as test_whole_fits_climb_to_the_true_link_count) with fewer whole fits: the
+    whole-fit rule fits 8..15, here only counts that may be chosen and the continue decisions'
+    witnesses are fitted. A link grown on the 10-link fit (one arm segment short) finds that
+    segment: the error drops from over 1 % to the floor's order."""
+    scan, truth = samples.branching()
+    seg = F.Segmenter(scan)
+    fits = {}
+    k, whole, grown, decisions = linkcount._grown_upward(seg, 8, 16, 4, linkcount.SearchProgress(None, 1.0), fits)
+    assert k == 11 and decisions[-1] == (11, "explained"), decisions
+    assert len(fits) <= 6 and set(whole) == set(fits) and whole[10] > 1.0 > 0.01 > whole[11]
+    r = fits[10]
+    X = scan.vertices[None] + scan.fields()
+    spread = float(np.sum((X - X.mean(axis=1, keepdims=True)) ** 2))
+    labels, w, R, t, err = linkcount.grow_link(scan.vertices, scan.fields(), scan.faces, r.face_labels,
+                                               r.weights[:, :10], r.rotations, r.translations,
+                                               seg.valid[seg.unit_tri], spread)
+    assert w.shape == (scan.n_vertices, 11) and R.shape[1] == 11 and err < 0.1 < 1.0 < whole[10]
+    # the new link is one true link (the segment the 10-link fit had merged into a neighbour)
+    true_of_new = truth["face_labels"][labels == 10]
+    assert np.bincount(true_of_new).max() >= 0.9 * true_of_new.size
+
+
 def test_interpolating_links_known_ratios():
     """ρ of a chain's middle link: 0 when its motion is a convex blend of its neighbours', 1/2 for
     a translation half-way off their segment, 1 when both neighbours move alike; the ends have
@@ -182,7 +206,13 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     command line uses it instead of fitting that count again; other fit options refit."""
     scan = samples.make("branching")
     seg = F.Segmenter(scan)
-    choice = linkcount.choose_links(seg, max_links=16)
+    reports = []
+    choice = linkcount.choose_links(seg, max_links=16, progress=lambda s, f: reports.append((s, f)) and False)
+    # the search is one stage whose fraction only grows, from 0 to 1 (its fits' stages inside it)
+    assert {s for s, _ in reports} == {"links"}
+    fractions = [f for _, f in reports]
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0 and fractions == sorted(fractions)
+    assert len(set(fractions)) > 16                   # each count of the curve and each fit moves it
     mine = choice.reusable()
     again = F.fit(scan, choice.links, segmenter=seg)
     assert mine is not None and mine.n_links == choice.links == 11
@@ -197,7 +227,10 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     real_fit = F.fit
     monkeypatch.setattr(F, "fit", lambda *a, **k: calls.append(a[1]) or real_fit(*a, **k))
     assert cli.main(["fit", str(path), "--links", "auto", "--max-links", "16", "-o", str(tmp_path / "r.npz")]) == 0
-    assert "links auto: chose 11" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "links auto: chose 11" in out and "with the link-count search up to 16 links" in out   # priced
+    shown = [int(l.split()[-1][:-1]) for l in out.splitlines() if l.startswith("choosing the link count: ")]
+    assert shown[0] == 0 and shown[-1] == 100 and shown == sorted(set(shown))   # the search, in tenths
     assert F.load_result(tmp_path / "r.npz").n_links == 11
     assert 11 in calls and len(calls) == len(set(calls))   # no count fitted twice: the CLI reused it
 
