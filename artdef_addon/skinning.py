@@ -559,7 +559,8 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
     articulation error Σ_p Σ_v ‖x̂ − x‖² of the returned skin. With ``details`` a fifth value
     holds :func:`_refine`'s details of the returned skin (what :mod:`swaps` prices links from).
     ``target``: stop early when the error cannot fall below it in the rounds left
-    (:data:`GIVE_UP_SLACK`); the returned error is then above it. ``rows`` (S,): decompose on
+    (:data:`GIVE_UP_SLACK`), or (``far=(rounds, factor)``) when after ``rounds`` rounds it is still
+    ``factor`` times above it; the returned error is then above it. ``rows`` (S,): decompose on
     those vertices only (:func:`vertex_sample`; candidates still from the whole mesh): weights,
     error and details are then the sample's, (S, L); :func:`full_skin` extends them to every vertex."""
     kw["radius"] = radius
@@ -567,6 +568,7 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
     L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
     kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
     target = kw.pop("target", None)
+    far = kw.pop("far", None)
     w_init = kw.pop("w_init", None)
     rows = kw.pop("rows", None)
     if rows is not None:
@@ -586,6 +588,8 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
         # a trial that cannot reach ``target`` in its remaining rounds: the alternation's drops
         # shrink from round to round (measured on the real sets; GIVE_UP_SLACK for the odd rise)
         hopeless = target is not None and e1 - GIVE_UP_SLACK * (e - e1) * (iterations - 1 - i) > target
+        if far is not None and target is not None and i + 1 >= far[0] and e1 > far[1] * target:
+            hopeless = True     # still far above the target after far[0] rounds (splits.FAR)
         w, R, t, e, info = w1, R1, t1, e1, info1
         if done or hopeless:
             break

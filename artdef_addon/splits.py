@@ -39,6 +39,10 @@ MIN_GAIN = 0.05
 #: on RobotExpressive's fresh poses, seeds 5-13, the sampled split trials found every joint where
 #: the whole mesh missed one on seed 5)
 SAMPLE_SHARE = 0.8
+#: a trial still this many times above its target after this many rounds is given up: on
+#: RobotExpressive's fresh poses (seeds 6, 9, 10, 12, 14, 23), the wolf and cheburashka every kept
+#: trial stood at most 3.0 x its target after 3 rounds, the losing ones at 12-47 x (CesiumMan's ~150 x)
+FAR = (3, 8.0)
 #: rounds of splits at most (each keeps one)
 MAX_SPLITS = 4
 
@@ -155,7 +159,7 @@ def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: n
                     R1[:, l], t1[:, l] = Rr[:, 0], tr[:, 0]
                 target = (1.0 - MIN_GAIN) * (base if best is None else min(base, best[0]))
                 trial = alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS, w_init=w,
-                                         target=target, rows=rows)
+                                         target=target, rows=rows, far=FAR)
                 if trial[3] < target:
                     best = (trial[3], new) + tuple(trial[:3])
         if best is None:
