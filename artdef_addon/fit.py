@@ -206,9 +206,10 @@ class Segmenter:
         # a tracked scan with many fields is segmented on a spread of them (its consecutive frames
         # repeat each other); every field's link motions still come from the links' medoid units
         self.clustered = np.arange(scan.n_fields)
+        # about 2,000 triangles' vertices: enough to tell poses apart by their displacements
+        self.probe = np.unique(self.faces[:: max(1, len(self.valid) // 2000)])
         if scan.kind != "greens" and SEGMENT_FIELDS and scan.n_fields > SEGMENT_FIELDS:
-            self.clustered = field_sample(fields, SEGMENT_FIELDS,
-                                          rows=np.unique(self.faces[:: max(1, len(self.valid) // 2000)]))
+            self.clustered = field_sample(fields, SEGMENT_FIELDS, rows=self.probe)
         self.tri_adjacency = clustering.face_adjacency(self.faces)
         Tv = len(self.valid)
         est = _cost.estimate(Tv, scan.n_fields, scan.n_vertices, strategy, budget)
@@ -532,17 +533,13 @@ def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields
             # a field left out of the clustering (Segmenter.clustered): the motion ν of each link's
             # medoid unit in the clustered field nearest to it in displacement
             if rest is None:
-                used = np.asarray(used_fields)
                 U = seg.scan.fields()
-                sel = np.unique(seg.faces[:: max(1, len(seg.valid) // 2000)])
-                D = U[used][:, sel].reshape(len(used), -1)
-                tris = seg.faces[seg.unit_tri]
-                rest = rest_geometry(x0, tris[np.unique(medoids)])
-                where = {u: j for j, u in enumerate(np.unique(medoids))}
-            d = np.sum((D - U[p][sel].reshape(1, -1)) ** 2, axis=1)
-            m = medoids[:, int(np.argmin(d))]
-            f = field_features(x0, fields[i], tris[np.unique(medoids)], rest)
-            idx = np.array([where[u] for u in m])
+                D = U[np.asarray(used_fields)][:, seg.probe].reshape(len(used_fields), -1)
+                units = np.unique(medoids)
+                rest = rest_geometry(x0, seg.faces[seg.unit_tri[units]])
+            near = int(np.argmin(np.sum((D - U[p][seg.probe].reshape(1, -1)) ** 2, axis=1)))
+            f = field_features(x0, fields[i], seg.faces[seg.unit_tri[units]], rest)
+            idx = np.searchsorted(units, medoids[:, near])
             R[i], t[i] = f.R[idx], f.t[idx]
     return R, t
 
@@ -576,11 +573,25 @@ def stage_relabel(st: FitState) -> None:
     new, st.swaps = _merge.dominant_labels(scan.vertices, st.fields[pick], scan.faces, st.labels, st.R[pick],
                                            st.t[pick], units=seg.valid[seg.unit_tri])
     if np.any(new != st.labels):
-        st.labels = new
-        if st.motion != "lsq":
-            st.medoids = _merge.link_medoids([seg.features[p] for p in st.used_fields], seg.weights[st.used_fields],
-                                             st.labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
-        stage_motions(st)
+        _relabelled(st, new)
+
+
+def _relabelled(st: FitState, labels: np.ndarray) -> None:
+    """New ``labels (T,)``: the links' medoid units and their robust motions again (relabel, split)."""
+    seg = st.seg
+    st.labels = labels
+    if st.motion != "lsq":
+        st.medoids = _merge.link_medoids([seg.features[p] for p in st.used_fields], seg.weights[st.used_fields],
+                                         st.labels[seg.valid][seg.unit_tri], st.n_links, unit_size=seg.unit_size)
+    stage_motions(st)
+
+
+def _refined_skin(st: FitState, R: np.ndarray, t: np.ndarray, w_init: np.ndarray | None = None) -> None:
+    """The refined skin from link motions ``R``, ``t`` (every field): its decomposition on the vertex
+    sample, polished on every vertex (:func:`skinning.alternate`); ``weights``, ``Rs``, ``ts``."""
+    x0, faces = st.scan.vertices, st.scan.faces
+    rows = vertex_sample(faces, st.labels, x0.shape[0]) if SKIN_SAMPLE else None
+    st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, R, t, w_init=w_init, rows=rows)
 
 
 def stage_skin(st: FitState) -> None:
@@ -597,8 +608,7 @@ def stage_skin(st: FitState) -> None:
     """
     x0, faces = st.scan.vertices, st.scan.faces
     if st.skin == "refined":
-        rows = vertex_sample(faces, st.labels, x0.shape[0]) if SKIN_SAMPLE else None
-        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t, rows=rows)
+        _refined_skin(st, st.R, st.t)
     else:
         st.Rs = st.ts = None
         st.weights = blend_weights(x0, faces, st.labels, st.n_links)
@@ -624,24 +634,16 @@ def stage_split(st: FitState) -> None:
     # the trials decide labels only where the scan has many fields: then on a spread of them, and
     # the skin is decomposed again on every field from the new labels' robust motions
     fsel = field_sample(st.fields) if _merge.SAMPLE else None
-    if fsel is None:
-        labels, w, Rs, ts, st.splits = _splits.split_links(x0, st.fields, faces, st.labels, st.weights, st.Rs,
-                                                           st.ts, units=seg.valid[seg.unit_tri])
-    else:
-        labels, _, _, _, st.splits = _splits.split_links(x0, st.fields[fsel], faces, st.labels, st.weights,
-                                                         st.Rs[fsel], st.ts[fsel], units=seg.valid[seg.unit_tri])
+    pick = slice(None) if fsel is None else fsel
+    labels, w, Rs, ts, st.splits = _splits.split_links(x0, st.fields[pick], faces, st.labels, st.weights,
+                                                       st.Rs[pick], st.ts[pick], units=seg.valid[seg.unit_tri])
     if not st.splits:
         return
-    st.labels = labels
-    if st.motion != "lsq":
-        st.medoids = _merge.link_medoids([seg.features[p] for p in st.used_fields], seg.weights[st.used_fields],
-                                         st.labels[seg.valid][seg.unit_tri], L, unit_size=seg.unit_size)
-    stage_motions(st)
-    rows = vertex_sample(faces, st.labels, x0.shape[0]) if SKIN_SAMPLE else None
-    if fsel is None:
-        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, Rs, ts, w_init=w, rows=rows)
-    else:
-        st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, st.R, st.t, rows=rows)
+    _relabelled(st, labels)
+    if fsel is None:     # from the split's own decomposition
+        _refined_skin(st, Rs, ts, w_init=w)
+    else:                # the split's motions cover the sampled fields only: from the robust ones
+        _refined_skin(st, st.R, st.t)
 
 
 def joint_of(R, t, Rs, ts, a, b, c_ref, diag):

@@ -61,7 +61,9 @@ import numpy as np
 from . import cost as _cost
 from . import skinning
 from .blas import single_threaded
+from .merge import dominant_faces
 from .model import skin
+from .quality import frame_spread
 
 
 @dataclasses.dataclass
@@ -381,14 +383,7 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
         w1, e1 = skinning.full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[:2]
     # every face to the link of its largest summed weight; a link left without a clustered triangle
     # keeps its faces (as the relabelling does)
-    best = w1[faces].sum(axis=1).argmax(axis=1)
-    for _ in range(L + 1):
-        owned = np.bincount(best[units], minlength=L + 1) > 0
-        if owned.all():
-            break
-        keep = ~owned[new]
-        best[keep] = new[keep]
-    new = best
+    new = dominant_faces(w1, faces, new, units)
     return new, w1, R1, t1, (100.0 * np.sqrt(max(e1, 0.0) / spread) if spread > 0 else 0.0)
 
 
@@ -413,7 +408,7 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     from .fit import fit
     scan = seg.scan
     x0, faces, fields = scan.vertices, scan.faces, scan.fields()
-    spread = sum(float(np.sum((x0 + f - (x0 + f).mean(axis=0)) ** 2)) for f in fields)   # ‖X − X̄‖², X̄ a frame's centroid
+    spread = frame_spread(x0, fields)   # ‖X − X̄‖², X̄ a frame's centroid
     units = seg.valid[seg.unit_tri]
     start = k
     errors: dict[int, float] = {}

@@ -314,9 +314,11 @@ SAMPLE = True
 RELABEL_ROUNDS = 5
 
 
-def _argmax_owned(w, faces, labels, k, units):
-    """Each face's link of largest summed skin weight; a link left without faces (or without
-    ``units``) keeps its old ones."""
+def dominant_faces(w, faces, labels, units=None, k=None):
+    """Each face's link of largest summed skin weight ``w (N, L)`` over its corners (the first ``k``
+    columns, default all); where a link would be left without a face (or without a face of ``units``)
+    its faces keep their ``labels (T,)``. The relabelling's, the splits' and the grown links' rule."""
+    k = w.shape[1] if k is None else k
     new = w[faces, :k].sum(axis=1).argmax(axis=1)
     for _ in range(k):
         owned = np.bincount(new if units is None else new[units], minlength=k) > 0
@@ -367,7 +369,7 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     else:
         swaps = None if SWAP_LINKS and k > 2 else 0   # None: skipped, the scan is above the budget
         w, R, t, e = decompose(labels, R, t)
-    new = _argmax_owned(w, faces, labels, k, units)
+    new = dominant_faces(w, faces, labels, units, k)
     # the argmax moves seams, which changes the links' candidate reach: decompose again on the
     # new labels (from the motions just found) while that lowers the error and moves faces
     for _ in range(RELABEL_ROUNDS):
@@ -377,5 +379,5 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
         if not e1 < e:
             break
         labels, w, R, t, e = new, w1, R1, t1, e1
-        new = _argmax_owned(w, faces, labels, k, units)
+        new = dominant_faces(w, faces, labels, units, k)
     return new, swaps

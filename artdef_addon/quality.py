@@ -91,24 +91,29 @@ def fidelity(x0: np.ndarray, fields: np.ndarray, sq_error: float) -> Fidelity:
     """:class:`Fidelity` from the summed squared error Σ_p ‖X_p − X̂_p‖² (a scalar), the rest x0 (N, 3) and
     the fields (F, N, 3); streamed over frames (no F·N·3 temporary)."""
     F, N = fields.shape[0], x0.shape[0]
-    frame_spread = _frame_spread(x0, fields)
-    mean_u = fields.mean(axis=0)
-    vertex_spread = sum(float(np.sum((fields[p] - mean_u) ** 2)) for p in range(F))
+    fs = frame_spread(x0, fields)
+    vs = vertex_spread(fields)
     num = float(np.sqrt(max(sq_error, 0.0)))
     # NaN where a denominator vanishes: the per-vertex mean for one field (or identical fields), the
     # distortion only for frames whose vertices all coincide
-    return Fidelity(kg_percent=100.0 * num / np.sqrt(frame_spread) if frame_spread > 0 else float("nan"),
+    return Fidelity(kg_percent=100.0 * num / np.sqrt(fs) if fs > 0 else float("nan"),
                     e_rms=num / np.sqrt(3.0 * N * F) if N * F else float("nan"),
-                    vertex_mean_percent=100.0 * num / np.sqrt(vertex_spread) if vertex_spread > 0 else float("nan"))
+                    vertex_mean_percent=100.0 * num / np.sqrt(vs) if vs > 0 else float("nan"))
 
 
-def _frame_spread(x0, fields) -> float:
-    """‖X − X̄‖_F² with X̄ each frame's centroid, streamed over frames."""
+def frame_spread(x0, fields) -> float:
+    """‖X − X̄‖_F² with X̄ each frame's centroid (the Karni–Gotsman denominator), streamed over frames."""
     total = 0.0
     for p in range(fields.shape[0]):
         X = x0 + fields[p]
         total += float(np.sum((X - X.mean(axis=0)) ** 2))
     return total
+
+
+def vertex_spread(fields) -> float:
+    """‖U − Ū‖_F² with Ū each vertex's mean over the fields ``(F, N, 3)``, streamed over fields."""
+    mean = fields.mean(axis=0)
+    return sum(float(np.sum((fields[p] - mean) ** 2)) for p in range(fields.shape[0]))
 
 
 def kg_distortion(X: np.ndarray, Xhat: np.ndarray) -> float:
@@ -197,10 +202,10 @@ def verdict(x0: np.ndarray, fields: np.ndarray, weights: np.ndarray, n_links: in
     explain the data. x0 (N, 3), fields (F, N, 3), weights (N, L'). All errors Karni–Gotsman percent.
     """
     F, N = fields.shape[0], x0.shape[0]
-    frame_spread = _frame_spread(x0, fields)
+    fs = frame_spread(x0, fields)
 
     def pct(sq):
-        return 100.0 * np.sqrt(max(sq, 0.0) / frame_spread) if frame_spread > 0 else 0.0
+        return 100.0 * np.sqrt(max(sq, 0.0) / fs) if fs > 0 else 0.0
     e_rigid = pct(rigid_error(x0, fields))
     n_par = int(6 * n_links * F + np.count_nonzero(weights))
     k = int(np.clip(n_par // (3 * N + F), 1, max(F - 1, 1)))

@@ -28,6 +28,9 @@ from __future__ import annotations
 import numpy as np
 
 from .joints import lsq_motions
+from .merge import dominant_faces
+from .quality import vertex_spread
+from .swaps import reassign_faces
 
 #: links tried for a cut per round: those whose vertices hold most of the decomposition error
 SPLIT_CANDIDATES = 4
@@ -57,20 +60,6 @@ def principal_cut(points: np.ndarray) -> np.ndarray:
     return s > np.median(s)
 
 
-def dominant(w: np.ndarray, faces: np.ndarray, labels: np.ndarray, units: np.ndarray) -> np.ndarray:
-    """Each face's link of largest summed skin weight ``w (N, L)`` over its corners; where a link
-    would be left without a face of ``units`` its faces keep their ``labels`` (T,)."""
-    L = w.shape[1]
-    new = w[faces].sum(axis=1).argmax(axis=1)
-    for _ in range(L):
-        owned = np.bincount(new[units], minlength=L) > 0
-        if owned.all():
-            break
-        keep = ~owned[labels]
-        new[keep] = labels[keep]
-    return new
-
-
 def _relabel(x0, fields, faces, labels, w, R, t, e, units, rows=None):
     """Faces to the link of largest summed weight, decomposed again, while E falls (as
     :func:`merge.dominant_labels` does after its swaps). ``w (N, L)`` every vertex's weights; with
@@ -80,7 +69,7 @@ def _relabel(x0, fields, faces, labels, w, R, t, e, units, rows=None):
     from .skinning import alternate_scored, full_skin
     from .swaps import TRIAL_ROUNDS
     for _ in range(RELABEL_ROUNDS):
-        new = dominant(w, faces, labels, units)
+        new = dominant_faces(w, faces, labels, units)
         if np.array_equal(new, labels):
             break
         w1, R1, t1, e1 = alternate_scored(x0, fields, faces, new, R, t, iterations=TRIAL_ROUNDS, w_init=w,
@@ -115,8 +104,7 @@ def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: n
         return labels, weights, R, t, 0
     w, R, t, e, info = alternate_scored(x0, fields, faces, labels, R, t, iterations=0, details=True,
                                         w_init=weights)
-    mean = fields.mean(axis=0)
-    spread = sum(float(np.sum((fields[i] - mean) ** 2)) for i in range(P))
+    spread = vertex_spread(fields)
     # the trials decompose on a vertex sample where the mesh is large (as the relabelling does),
     # compared with the current skin's error on the same vertices
     rows = vertex_sample(faces, labels, x0.shape[0], share=SAMPLE_SHARE) if sample else None
@@ -137,14 +125,7 @@ def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: n
             for d in drops:
                 if d == s:
                     continue
-                new = labels.copy()
-                mine = np.flatnonzero(labels == d)
-                ferr = info["err"][:L][:, faces[mine]].sum(axis=2)    # (L, n) summed over corners
-                ferr[d] = np.inf
-                pick = np.argmin(ferr, axis=0)
-                lost = ~np.isfinite(ferr.min(axis=0))
-                pick[lost] = s if s != d else pick[lost]
-                new[mine] = pick
+                new = reassign_faces(labels, d, faces, info["err"][:L], fallback=s)
                 part = np.flatnonzero(new == s)
                 far = principal_cut(x0[faces[part]].mean(axis=1))
                 if far.sum() == 0 or far.sum() == len(part):

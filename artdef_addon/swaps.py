@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .joints import lsq_motions
+from .quality import vertex_spread
 
 #: a swap is kept when it lowers the decomposition error by at least this fraction
 MIN_GAIN = 0.005
@@ -63,6 +64,28 @@ def removal_costs(info: dict, L: int):
         new = np.minimum(blend, single.min(axis=0))
         np.add.at(cost, l, np.where(np.isfinite(new), new - cur[v], np.inf))
     return cost, cur
+
+
+def reassign_faces(labels, l, faces, err, fallback=None, x0=None):
+    """``labels`` (T,) with link ``l``'s faces given to the other link whose own motion fits their
+    corners best (``err`` (L, N): each link's single-link squared error per vertex, inf off its
+    candidates). A face with no other candidate link goes to ``fallback``, or (``x0`` given) to the
+    link of the nearest face of another link. Returns a new array."""
+    new = labels.copy()
+    mine = np.flatnonzero(labels == l)
+    ferr = err[:, faces[mine]].sum(axis=2)                              # (L, n) summed over corners
+    ferr[l] = np.inf
+    pick = np.argmin(ferr, axis=0)
+    lost = ~np.isfinite(ferr.min(axis=0))
+    if lost.any() and fallback is not None and fallback != l:
+        pick[lost] = fallback
+    elif lost.any() and x0 is not None:   # no other candidate link nearby: the nearest face of another link
+        from scipy.spatial import cKDTree
+        other = np.flatnonzero(labels != l)
+        cen = x0[faces].mean(axis=1)
+        pick[lost] = labels[other[cKDTree(cen[other]).query(cen[mine[lost]])[1]]]
+    new[mine] = pick
+    return new
 
 
 def _one_ring(faces, f, labels):
@@ -105,9 +128,7 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
     w, R, t, e, info = decompose(labels, R, t, rows)
     if rows is not None:
         w, info = extend(labels, R, t, w, rows)
-    sub = fields if rows is None else fields[:, rows]
-    mean = sub.mean(axis=0)
-    spread = sum(float(np.sum((sub[i] - mean) ** 2)) for i in range(P))
+    spread = vertex_spread(fields if rows is None else fields[:, rows])
     if e <= EXACT ** 2 * spread:      # the skin already explains the fields: nothing to swap
         return (w, R, t, labels, 0) + ((e, rows) if error else ())
     swaps = 0
@@ -129,18 +150,7 @@ def swap_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np
             if (l, seed) in tried:
                 continue
             tried.add((l, seed))
-            new = labels.copy()
-            mine = np.flatnonzero(labels == l)
-            ferr = info["err"][:L][:, faces[mine]].sum(axis=2)          # (L, n) summed over corners
-            ferr[l] = np.inf
-            pick = np.argmin(ferr, axis=0)
-            lost = ~np.isfinite(ferr.min(axis=0))
-            if lost.any():  # no other candidate link nearby: the nearest face of another link
-                from scipy.spatial import cKDTree
-                other = np.flatnonzero(labels != l)
-                cen = x0[faces].mean(axis=1)
-                pick[lost] = labels[other[cKDTree(cen[other]).query(cen[mine[lost]])[1]]]
-            new[mine] = pick
+            new = reassign_faces(labels, l, faces, info["err"][:L], x0=x0)
             ring = _one_ring(faces, seed, labels)
             new[ring] = l
             if np.any(np.bincount(new[units], minlength=L) == 0):
