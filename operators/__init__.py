@@ -14,7 +14,8 @@
 * ``naming`` — ``artdef.name_bones`` (root-first numbers, source joint names, one bone);
 * ``engine`` — ``artdef.rotation_only`` (rotation-only joints, fixed bone lengths);
 * ``sequence`` — numbered OBJ/PLY files (pure numpy, no bpy);
-* ``fitquality`` — residual and per-link figures of a fit (pure numpy).
+* ``fitquality`` — residual and per-link figures of a fit (pure numpy);
+* ``menus`` — registration of a module's classes with its File menu entry.
 """
 
 from . import props, ops, sources, animfile, export, finalize, naming, engine

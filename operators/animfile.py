@@ -21,7 +21,9 @@ import numpy as np
 from bpy.props import IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import compat
+from . import compat, menus
+from ..artdef_addon import cli as _cli
+from ..artdef_addon.cli import SEQUENCE_EXTENSIONS
 
 #: extension -> (importer operator path, keyword arguments)
 IMPORTERS = {
@@ -34,23 +36,12 @@ IMPORTERS = {
     ".usda": ("wm.usd_import", {}),
     ".usdz": ("wm.usd_import", {}),
 }
-SEQUENCE_EXTENSIONS = (".obj", ".ply")
 #: Modifiers whose evaluation replays a cache (no action to read keys from).
 CACHE_MODIFIERS = frozenset(("MESH_SEQUENCE_CACHE", "MESH_CACHE"))
 
 
-def file_kind(path):
-    """'npz', 'animated', 'sequence' or None for a path the fit can read."""
-    if os.path.isdir(path) or any(c in os.path.basename(path) for c in "*?["):
-        return "sequence"
-    ext = os.path.splitext(path)[1].lower()
-    if ext == ".npz":
-        return "npz"
-    if ext in IMPORTERS:
-        return "animated"
-    if ext in SEQUENCE_EXTENSIONS:
-        return "sequence"
-    return None
+#: what the fit can read from a path: the command line's rule (one list of extensions for both)
+file_kind = _cli.input_kind
 
 
 def _operator(path):
@@ -371,13 +362,4 @@ def menu_import(self, context):
 classes = (ARTDEF_OT_fields_from_file,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-    bpy.types.TOPBAR_MT_file_import.append(menu_import)
-
-
-def unregister():
-    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = menus.registration(classes, "TOPBAR_MT_file_import", menu_import)

@@ -31,7 +31,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
-from . import compat, rig
+from . import compat, menus, rig
 
 FORMATS = (('GLB', "glTF Binary (.glb)", "One .glb file"),
            ('GLTF_SEPARATE', "glTF Separate (.gltf + .bin)", "A .gltf with its .bin next to it"),
@@ -348,13 +348,4 @@ def menu_export(self, context):
 classes = (ARTDEF_OT_export_rig,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-    bpy.types.TOPBAR_MT_file_export.append(menu_export)
-
-
-def unregister():
-    bpy.types.TOPBAR_MT_file_export.remove(menu_export)
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = menus.registration(classes, "TOPBAR_MT_file_export", menu_export)

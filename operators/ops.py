@@ -14,7 +14,7 @@ from ..artdef_addon import api as _api
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
 from ..artdef_addon.options import FitOptions, OptionsError
-from . import fitquality, io, rig
+from . import fitquality, io, menus, rig
 from .props import SETTING_NAMES, FitSettings, enum_id, options_from, store_options
 
 #: Extra cancel checks consulted by every fit's progress callback:
@@ -769,15 +769,10 @@ if ARTDEF_FH_scan is not None:
     classes += (ARTDEF_FH_scan,)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-    bpy.types.TOPBAR_MT_file_import.append(menu_import)
-
-
-def unregister():
-    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+def _forget():
+    """What the add-on keeps between fits: the core's cached segmenters and the last results."""
     _api.clear_cache()
     LAST_RESULTS.clear()
+
+
+register, unregister = menus.registration(classes, "TOPBAR_MT_file_import", menu_import, after_unregister=_forget)

@@ -24,7 +24,7 @@ from bpy.props import EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ..artdef_addon import scan as _scan
-from . import io, rig, sequence
+from . import io, menus, rig, sequence
 from .ops import mesh_in_object_mode
 
 #: Modifiers that change the topology (Blender's "Generate" group).  They are
@@ -409,13 +409,4 @@ def menu_import(self, context):
 classes = (ARTDEF_OT_fields_from_animation, ARTDEF_OT_import_mesh_sequence)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-    bpy.types.TOPBAR_MT_file_import.append(menu_import)
-
-
-def unregister():
-    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = menus.registration(classes, "TOPBAR_MT_file_import", menu_import)
