@@ -178,6 +178,30 @@ def pytest_collection_modifyitems(config, items):
 # (pytest_unconfigure is its last hook), run the Python exit handlers and leave
 # with pytest's exit status, skipping the C-level teardown.
 
+@pytest.fixture
+def interrupt_at():
+    """``run(cmd, marker, cwd) -> (exit code, stderr)``: run ``cmd`` with the repository on
+    PYTHONPATH and send SIGINT as soon as a line of its stdout contains ``marker`` (Ctrl-C tests)."""
+    import signal
+
+    def run(cmd, marker, cwd):
+        env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), PYTHONUNBUFFERED="1")
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
+        seen = []
+        for line in p.stdout:
+            seen.append(line)
+            if marker in line:
+                p.send_signal(signal.SIGINT)
+                break
+        try:
+            _, err = p.communicate(timeout=600)
+        finally:
+            p.kill()
+        assert any(marker in s for s in seen), (seen, err)
+        return p.returncode, err
+    return run
+
+
 _EXIT_STATUS = [0]
 
 

@@ -3,8 +3,6 @@
 during the command line's Blender stage exits 130 with no partial output and no crash."""
 import hashlib
 import os
-import signal
-import subprocess
 import sys
 
 import numpy as np
@@ -75,36 +73,19 @@ def test_degenerate_and_unreferenced_accepted_as_on_the_command_line(clean_scene
     assert len(groups) >= 3
 
 
-def _interrupt_at(cmd, marker, cwd):
-    env = dict(os.environ, PYTHONPATH=ROOT, PYTHONUNBUFFERED="1")
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
-    seen = []
-    for line in p.stdout:
-        seen.append(line)
-        if marker in line:
-            p.send_signal(signal.SIGINT)
-            break
-    try:
-        _, err = p.communicate(timeout=600)
-    finally:
-        p.kill()
-    assert any(marker in s for s in seen), (seen, err)
-    return p.returncode, err
-
-
 @pytest.mark.skipif(not NEW_BLENDER, reason="the Blender fit needs Blender 5")
 @pytest.mark.parametrize("marker", [
     "building the Blender outputs",     # while bpy starts, the add-on registers, the rig is built
     # (no fit runs in the Blender stage any more: the rig is built from the command's one fit)
 ])
-def test_ctrl_c_in_the_blender_stage(tmp_path, marker):
+def test_ctrl_c_in_the_blender_stage(tmp_path, marker, interrupt_at):
     scan = tmp_path / "br.npz"
     files.write_scan(scan, samples.make("branching"))
     out = tmp_path / "out.npz"
     out.write_bytes(b"earlier result")
     (tmp_path / "out.blend").write_bytes(b"earlier blend")
-    code, err = _interrupt_at([sys.executable, "-m", "artdef_addon", "fit", str(scan), "--links", "11",
-                               "-o", str(out), "--blend", str(tmp_path / "out.blend")], marker, tmp_path)
+    code, err = interrupt_at([sys.executable, "-m", "artdef_addon", "fit", str(scan), "--links", "11",
+                              "-o", str(out), "--blend", str(tmp_path / "out.blend")], marker, tmp_path)
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 130 and lines == ["artdef: error: interrupted; no file was written or changed"], err
     assert out.read_bytes() == b"earlier result"

@@ -10,7 +10,6 @@ import importlib.util
 import io
 import os
 import resource
-import signal
 import subprocess
 import sys
 import zipfile
@@ -286,32 +285,13 @@ def test_file_size_limit_keeps_the_earlier_result(rod_file, tmp_path):
     assert digest(out) == before and leftovers(tmp_path) == []
 
 
-def _interrupt_at(cmd, marker, tmp_path, env=None):
-    """Run ``cmd``, send SIGINT when stdout prints a line containing ``marker``; (code, stderr)."""
-    env = dict(os.environ, PYTHONPATH=ROOT, PYTHONUNBUFFERED="1", **(env or {}))
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                         cwd=tmp_path)
-    seen = []
-    for line in p.stdout:
-        seen.append(line)
-        if marker in line:
-            p.send_signal(signal.SIGINT)
-            break
-    try:
-        _, err = p.communicate(timeout=600)
-    finally:
-        p.kill()
-    assert any(marker in s for s in seen), (seen, err)
-    return p.returncode, err
-
-
-def test_ctrl_c_during_the_fit(tmp_path):
+def test_ctrl_c_during_the_fit(tmp_path, interrupt_at):
     scan = tmp_path / "br.npz"
     files.write_scan(scan, samples.make("branching"))
     out = tmp_path / "out.npz"
     out.write_bytes(b"earlier result")
-    code, err = _interrupt_at([sys.executable, "-m", "artdef_addon", "fit", str(scan), "--links", "auto",
-                               "-o", str(out)], "estimate:", tmp_path)
+    code, err = interrupt_at([sys.executable, "-m", "artdef_addon", "fit", str(scan), "--links", "auto",
+                              "-o", str(out)], "estimate:", tmp_path)
     lines = err.strip().splitlines()
     assert code == 130 and lines == ["artdef: error: interrupted; no file was written or changed"], err
     assert out.read_bytes() == b"earlier result" and leftovers(tmp_path) == []
