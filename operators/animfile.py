@@ -22,6 +22,7 @@ from bpy.props import IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from . import compat, menus
+from .ops import in_object_mode
 from ..artdef_addon import cli as _cli
 from ..artdef_addon.cli import SEQUENCE_EXTENSIONS
 
@@ -262,10 +263,7 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
 
     @classmethod
     def poll(cls, context):
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
-            return False
-        return True
+        return in_object_mode(cls, context)
 
     def execute(self, context):
         path = bpy.path.abspath(self.filepath)

@@ -32,6 +32,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
 from . import compat, menus, rig
+from .ops import in_object_mode
 
 FORMATS = (('GLB', "glTF Binary (.glb)", "One .glb file"),
            ('GLTF_SEPARATE', "glTF Separate (.gltf + .bin)", "A .gltf with its .bin next to it"),
@@ -63,8 +64,7 @@ def poll_rig(cls, context):
     """The shared ``poll`` of the operators that work on a fitted rig: Object Mode and an
     active object that is an ArtDef rig's mesh or armature. Returns ``(mesh, armature)``, or
     ``None`` after setting the poll message."""
-    if context.mode != 'OBJECT':
-        cls.poll_message_set("Switch to Object Mode")
+    if not in_object_mode(cls, context):
         return None
     mesh, arm = rig_parts(context.active_object)
     if mesh is None:

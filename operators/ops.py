@@ -53,6 +53,14 @@ def _active_mesh(context):
     return obj if obj is not None and obj.type == 'MESH' else None
 
 
+def in_object_mode(cls, context) -> bool:
+    """Whether Blender is in Object Mode; if not, the reason is set as the poll message."""
+    if context.mode != 'OBJECT':
+        cls.poll_message_set("Switch to Object Mode")
+        return False
+    return True
+
+
 def mesh_in_object_mode(cls, context):
     """The active mesh object if the operator can run on it (Object Mode), else None with the
     reason set as the poll message."""
@@ -60,8 +68,7 @@ def mesh_in_object_mode(cls, context):
     if obj is None:
         cls.poll_message_set("Select a mesh object")
         return None
-    if context.mode != 'OBJECT':
-        cls.poll_message_set("Switch to Object Mode")
+    if not in_object_mode(cls, context):
         return None
     return obj
 
@@ -91,10 +98,7 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
 
     @classmethod
     def poll(cls, context):
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
-            return False
-        return True
+        return in_object_mode(cls, context)
 
     def invoke(self, context, event):
         if self.properties.is_property_set("filepath"):  # dropped on the 3D View

@@ -25,7 +25,7 @@ from bpy_extras.io_utils import ImportHelper
 
 from ..artdef_addon import scan as _scan
 from . import io, menus, rig, sequence
-from .ops import mesh_in_object_mode
+from .ops import in_object_mode, mesh_in_object_mode
 
 #: Modifiers that change the topology (Blender's "Generate" group).  They are
 #: switched off while sampling (and switched back on after), so the sampled
@@ -329,10 +329,7 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper):
 
     @classmethod
     def poll(cls, context):
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode")
-            return False
-        return True
+        return in_object_mode(cls, context)
 
     def _path(self):
         path = bpy.path.abspath(self.filepath) if self.filepath else ""
