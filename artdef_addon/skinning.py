@@ -48,11 +48,14 @@ def blend_weights(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n
 
 
 def _kkt_solve(Q, q, P):
-    """Minimiser of wᵀQw − 2qᵀw subject to Σw = 1 and w = 0 off the rows' sets ``P`` (B, m)."""
+    """Minimiser of wᵀQw − 2qᵀw subject to Σw = 1 and w = 0 off the rows' sets ``P`` (B, m).
+
+    Q (B, m, m), q (B, m) → (B, m): one (m+1)-square KKT system a row, [[2Q, 1], [1ᵀ, 0]] on the
+    set and an identity row off it (LAPACK; the pseudo-inverse if a system is singular)."""
     B, m = q.shape
     Pf = P.astype(np.float64)
     K = np.empty((B, m + 1, m + 1))
-    K[:, :m, :m] = Q * (2.0 * (Pf[:, :, None] * Pf[:, None, :]))
+    np.multiply(Q, (2.0 * Pf)[:, :, None] * Pf[:, None, :], out=K[:, :m, :m])
     idx = np.arange(m)
     K[:, idx, idx] += 1.0 - Pf          # w = 0 off the set
     K[:, :m, m] = Pf
@@ -117,18 +120,20 @@ def _active_set(Q, q, valid, max_rounds, w0=None):
         if several.size:
             settle(several)
     done = np.zeros(B, dtype=bool)
-    for _ in range(max_rounds):
-        g = 2 * (np.einsum("nab,nb->na", Q, w) - q)
-        lam = np.einsum("na,na->n", g, w)
-        viol = np.where(valid & ~P, g - lam[:, None], np.inf)
+    live = rows                         # rows still adding links (a row that stops is done for good)
+    for r in range(max_rounds):
+        Ql, ql, Pl, wl = (Q, q, P, w) if r == 0 else (Q[live], q[live], P[live], w[live])
+        g = 2 * (np.einsum("nab,nb->na", Ql, wl) - ql)
+        lam = np.einsum("na,na->n", g, wl)
+        viol = np.where(valid[live] & ~Pl, g - lam[:, None], np.inf)
         j = viol.argmin(axis=1)
-        act = ~done & (viol[rows, j] < -1e-10 * scale)
-        done |= ~act
-        a = np.flatnonzero(act)
-        if a.size == 0:
+        act = viol[np.arange(live.size), j] < -1e-10 * scale[live]
+        done[live[~act]] = True
+        live = live[act]
+        if live.size == 0:
             break
-        P[a, j[a]] = True
-        settle(a)
+        P[live, j[act]] = True
+        settle(live)
     return w, done
 
 
@@ -159,25 +164,29 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     w, done = _active_set(Qm, qm, vm, max_rounds=3 * m, w0=None if w0 is None else w0[multi])
     over = np.flatnonzero(~done | (np.count_nonzero(w > 0, axis=1) > top))
     if over.size:
-        Qo, qo = Qm[over], qm[over]
-        alone = np.where(vm[over], np.einsum("nii->ni", Qo) - 2 * qo, np.inf)
-        best = None
-        for score in (-w[over], alone):
+        Qo, qo, vo, wo = Qm[over], qm[over], vm[over], w[over]
+        alone = np.where(vo, np.einsum("nii->ni", Qo) - 2 * qo, np.inf)
+        subs = []
+        for score in (-wo, alone):
             keep = np.argsort(score, axis=1, kind="stable")[:, :top]
             sub = np.zeros((over.size, m), dtype=bool)
             np.put_along_axis(sub, keep, True, axis=1)
-            sub &= vm[over]
-            # warm start from the convex optimum's weights on the kept links (feasible there, and
-            # usually the limited optimum's support already): fewer active-set steps, same optimum
-            ws, _ = _active_set(Qo, qo, sub, max_rounds=3 * top, w0=np.where(sub, w[over], 0.0))
-            ws = np.maximum(ws, 0.0)
-            ws /= ws.sum(axis=1, keepdims=True)
-            obj = np.einsum("na,nab,nb->n", ws, Qo, ws) - 2 * np.einsum("na,na->n", qo, ws)
-            if best is None:
-                best, best_obj = ws, obj
-            else:
-                better = obj < best_obj
-                best[better] = ws[better]
+            subs.append(sub & vo)
+        # both choices solved in one batch (rows are independent); a row whose two choices keep
+        # the same links is solved once (the same problem from the same start)
+        other = np.flatnonzero((subs[0] != subs[1]).any(axis=1))
+        pick = np.concatenate([np.arange(over.size), other])
+        sub = np.concatenate([subs[0], subs[1][other]])
+        Qs, qs = Qo[pick], qo[pick]
+        # warm start from the convex optimum's weights on the kept links (feasible there, and
+        # usually the limited optimum's support already): fewer active-set steps, same optimum
+        ws, _ = _active_set(Qs, qs, sub, max_rounds=3 * top, w0=np.where(sub, wo[pick], 0.0))
+        ws = np.maximum(ws, 0.0)
+        ws /= ws.sum(axis=1, keepdims=True)
+        obj = np.einsum("na,nab,nb->n", ws, Qs, ws) - 2 * np.einsum("na,na->n", qs, ws)
+        best = ws[:over.size]
+        better = obj[over.size:] < obj[other]
+        best[other[better]] = ws[over.size:][better]
         w[over] = best
     w = np.maximum(w, 0.0)
     out[multi] = w / w.sum(axis=1, keepdims=True)
