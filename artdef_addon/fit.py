@@ -773,7 +773,7 @@ def stage_residuals(st: FitState) -> None:
     for i in range(P):
         x1 = x0 + fields[i]
         art = _model.skin(weights, st.Rf[i], st.tf[i], x0)
-        residual[i] = _model.rest_space_residual(weights, st.Rf[i], st.tf[i], x0, x1)
+        residual[i] = _model.rest_space_residual(weights, st.Rf[i], st.tf[i], x0, x1, art=art)
         back = _model.skin(weights, st.Rf[i], st.tf[i], x0 + residual[i])
         art_err[i] = np.sum((art - x1) ** 2)
         tot_err[i] = np.sum((back - x1) ** 2)

@@ -120,9 +120,10 @@ def blended_linear(weights, R) -> np.ndarray:
     return np.einsum("nl,lij->nij", weights, R)
 
 
-def rest_space_residual(weights, R, t, x0, x1) -> np.ndarray:
-    """δ with Σ_l w_l G_l (x0 + δ) = x1 exactly (METHOD §8 residual basis, in rest space)."""
-    art = skin(weights, R, t, x0)
+def rest_space_residual(weights, R, t, x0, x1, art=None) -> np.ndarray:
+    """δ (N, 3) with Σ_l w_l G_l (x0 + δ) = x1 exactly (METHOD §8 residual basis, in rest space).
+    ``art``: :func:`skin` of ``x0`` when the caller has it already."""
+    art = skin(weights, R, t, x0) if art is None else art
     Bv = blended_linear(weights, R)
     rhs = x1 - art
     det = np.linalg.det(Bv)
