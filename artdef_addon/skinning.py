@@ -138,7 +138,8 @@ def _active_set(Q, q, valid, max_rounds, w0=None):
 
 
 def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
-                          max_support: int | None = None, w0: np.ndarray | None = None) -> np.ndarray:
+                          max_support: int | None = None, w0: np.ndarray | None = None,
+                          free: list | None = None) -> np.ndarray:
     """Minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries,
     with at most ``max_support`` non-zero weights (default: no limit).
 
@@ -149,7 +150,8 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     their own — or the ``max_support`` candidates that fit best alone, whichever is better (so
     never worse than choosing the links by their single fit). Rows with a single valid candidate
     get weight 1 on it without a solve. ``w0`` (N, m): feasible weights to start the active set
-    from (the result does not depend on it where the optimum is unique).
+    from (the result does not depend on it where the optimum is unique). ``free``: a list to which
+    the convex optimum (N, m) (no support limit) is appended — the next round's best start.
     """
     N, m = q.shape
     out = np.zeros((N, m))
@@ -162,6 +164,10 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     top = m if max_support is None else max(1, min(m, int(max_support)))
     Qm, qm, vm = Q[multi], q[multi], valid[multi]
     w, done = _active_set(Qm, qm, vm, max_rounds=3 * m, w0=None if w0 is None else w0[multi])
+    if free is not None:
+        wf = out.copy()
+        wf[multi] = w
+        free.append(wf)
     over = np.flatnonzero(~done | (np.count_nonzero(w > 0, axis=1) > top))
     if over.size:
         Qo, qo, vo, wo = Qm[over], qm[over], vm[over], w[over]
@@ -389,7 +395,7 @@ POOL = 8
 
 
 def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, ground=None,
-            radius=None, cand=None, details=False, pool=None, w_init=None):
+            radius=None, cand=None, details=False, pool=None, w_init=None, w_free=None, free_out=None):
     """:func:`refined_weights` plus the total squared articulation error of the result.
 
     ``cand`` is the candidate matrix when the caller already has it (it depends on the labels
@@ -397,6 +403,9 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     vertex's candidate links ``cols`` (N, m), its normal equations ``Q`` (N, m, m), ``q`` (N, m),
     ``xx`` (N,), its weights on the candidates ``wc`` (N, m) and the single-link errors ``err``
     (L, N) (inf off the candidates) — what :mod:`swaps` needs to price removing a link.
+    ``w_free`` (N, L): the previous round's convex optimum (no influence limit) to start the
+    active set from instead of ``w_init`` (it differs from this round's by the motions' change
+    only, so few links enter or leave); ``free_out``: a dict that receives this round's, "w" (N, L).
     """
     N = vertices.shape[0]
     P = R.shape[0]
@@ -432,7 +441,9 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     # the same weights as one batch); kept whole only when the details are asked for (swaps, which
     # run on small scans only)
     q = np.take_along_axis(q_all, cols, axis=1)
-    w0 = None if w_init is None else np.take_along_axis(w_init, cols, axis=1) * valid
+    start = w_init if w_free is None else w_free
+    w0 = None if start is None else np.take_along_axis(start, cols, axis=1) * valid
+    free = None if free_out is None else []
     out = np.zeros((N, L))
     wc = np.zeros((N, m))
     block = N if details else SOLVE_BLOCK
@@ -442,13 +453,17 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
         e = min(N, s + block)
         Qb = Q[s:e] if details else _pair_quadratic(xh[s:e], G, cols[s:e])
         wb = simplex_least_squares(Qb, q[s:e], valid[s:e], max_support=max_influences,
-                                   w0=None if w0 is None else w0[s:e])
+                                   w0=None if w0 is None else w0[s:e], free=free)
         wb[wb < 1e-6] = 0.0
         wb /= wb.sum(axis=1, keepdims=True)
         wc[s:e] = wb
         total += float(np.sum(np.einsum("na,nab,nb->n", wb, Qb, wb) - 2 * np.einsum("na,na->n", q[s:e], wb)
                               + xx[s:e]))
     np.put_along_axis(out, cols, wc, axis=1)
+    if free_out is not None:
+        wf = np.zeros((N, L))
+        np.put_along_axis(wf, cols, np.concatenate(free), axis=1)
+        free_out["w"] = wf
     if details:
         return out, max(total, 0.0), {"cols": cols, "valid": valid, "Q": Q, "q": q, "xx": xx, "wc": wc, "err": err}
     return out, max(total, 0.0)
@@ -587,10 +602,14 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
         if kw.get("ground") is not None:
             kw["ground"] = kw["ground"][rows]
     fields = _Flat.of(vertices, fields)
-    w, e, *info = _refine(vertices, fields, faces, labels, R, t, w_init=w_init, **kw)
+    free = {}
+    w, e, *info = _refine(vertices, fields, faces, labels, R, t, w_init=w_init, free_out=free, **kw)
     for i in range(iterations):
         R1, t1 = update_motions(vertices, fields, w, R, t)
-        w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, w_init=w, **kw)
+        # the weight solve starts from the last round's convex optimum (fewer active-set steps)
+        free1 = {}
+        w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, w_init=w, w_free=free["w"],
+                                 free_out=free1, **kw)
         if e1 > e:      # round-off only: keep the better pair
             break
         done = e - e1 <= tol * e
@@ -599,7 +618,7 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
         hopeless = target is not None and e1 - GIVE_UP_SLACK * (e - e1) * (iterations - 1 - i) > target
         if far is not None and target is not None and i + 1 >= far[0] and e1 > far[1] * target:
             hopeless = True     # still far above the target after far[0] rounds (splits.FAR)
-        w, R, t, e, info = w1, R1, t1, e1, info1
+        w, R, t, e, info, free = w1, R1, t1, e1, info1, free1
         if done or hopeless:
             break
     return (w, R, t, e, *info)
