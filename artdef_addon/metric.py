@@ -141,6 +141,18 @@ def distance_block(f: FieldFeatures, rows, cols) -> np.ndarray:
     return a
 
 
+def row_medians(a: np.ndarray) -> np.ndarray:
+    """``np.median(a, axis=1)`` of a finite (n, r) block, to the bit, about 5x faster: one
+    partition at the upper middle, whose lower part's maximum is the lower middle (np.median
+    partitions at both and checks for NaN)."""
+    r = a.shape[1]
+    h = r // 2
+    part = np.partition(a, h, axis=1)
+    if r % 2:
+        return part[:, h].copy()
+    return (part[:, :h].max(axis=1) + part[:, h]) / 2
+
+
 def worker_count() -> int:
     """Threads for the blocked distance work: the CPUs this process may use, 1 to 4."""
     import os
