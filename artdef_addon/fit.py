@@ -37,7 +37,7 @@ from . import quality as _quality
 from . import splits as _splits
 from . import swaps as _swaps
 from .blas import single_threaded
-from .metric import worker_count, field_features, rest_geometry
+from .metric import worker_count, field_features, rest_geometry, triangle_motions
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights, field_sample, vertex_sample
 
@@ -192,6 +192,8 @@ class Segmenter:
         # distance sums of clusters, reused when the same scan is segmented again (link sweeps);
         # filled from the second segmentation on, so a single fit holds no extra memory
         self.sum_cache = _merge.SumCache()
+        # each unclustered field's nearest clustered field (link_motions), by the fields' ids
+        self.nearest_field = {}
         self._segmentations = 0
         self.notes = []
         T = scan.n_faces
@@ -512,6 +514,10 @@ class FitState:
     fidelity: object = None                   # quality.fidelity(...) figures
 
 
+#: entries of the (fields, clustered fields, probe coordinates) block of :func:`link_motions`' nearest-field search
+NEAR_BLOCK = 4_000_000
+
+
 def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields, field_idx):
     """Link motions ``R (P, L, 3, 3)``, ``t (P, L, 3)`` (§6): ``"lsq"``: least squares over each
     link's triangles; else the robust one, the motion ν of each link's medoid unit (Eq. 4)
@@ -523,24 +529,38 @@ def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields
     R = np.tile(np.eye(3), (P, L, 1, 1))
     t = np.zeros((P, L, 3))
     col = {p: i for i, p in enumerate(used_fields)}
-    rest = None
+    missing = []
     for i, p in enumerate(field_idx):
         if p in col:
             m = medoids[:, col[p]]
             R[i] = seg.features[p].R[m]
             t[i] = seg.features[p].t[m]
         elif seg.features[p] is None and len(used_fields):
-            # a field left out of the clustering (Segmenter.clustered): the motion ν of each link's
-            # medoid unit in the clustered field nearest to it in displacement
-            if rest is None:
-                U = seg.scan.fields()
-                D = U[np.asarray(used_fields)][:, seg.probe].reshape(len(used_fields), -1)
-                units = np.unique(medoids)
-                rest = rest_geometry(x0, seg.faces[seg.unit_tri[units]])
-            near = int(np.argmin(np.sum((D - U[p][seg.probe].reshape(1, -1)) ** 2, axis=1)))
-            f = field_features(x0, fields[i], seg.faces[seg.unit_tri[units]], rest)
-            idx = np.searchsorted(units, medoids[:, near])
-            R[i], t[i] = f.R[idx], f.t[idx]
+            missing.append(i)
+    if missing:
+        # a field left out of the clustering (Segmenter.clustered): the motion ν of each link's
+        # medoid unit in the clustered field nearest to it in displacement, all such fields at once
+        missing = np.asarray(missing)
+        key = (tuple(int(p) for p in used_fields), tuple(int(field_idx[i]) for i in missing))
+        near = getattr(seg, "nearest_field", {}).get(key)
+        if near is None:
+            # (the same for every call of a fit: the relabel and split stages ask again)
+            U = seg.scan.fields()
+            D = U[np.asarray(used_fields)][:, seg.probe].reshape(len(used_fields), -1)
+            X = U[np.asarray(field_idx)[missing][:, None], seg.probe[None, :]].reshape(len(missing), -1)
+            near = np.empty(len(missing), dtype=np.int64)
+            step = max(1, NEAR_BLOCK // max(D.size, 1))
+            for s in range(0, len(missing), step):
+                near[s:s + step] = np.argmin(np.sum((D[None] - X[s:s + step, None]) ** 2, axis=2), axis=1)
+            if hasattr(seg, "nearest_field"):
+                seg.nearest_field = {key: near}     # one entry: a fit asks for one set of fields
+        units = np.unique(medoids)
+        unit_faces = seg.faces[seg.unit_tri[units]]
+        rest = rest_geometry(x0, unit_faces)
+        Rm, tm = triangle_motions(fields[missing[:, None, None], unit_faces[None]], rest)   # (M, units, …)
+        idx = np.searchsorted(units, medoids[:, near].T)                                 # (M, L)
+        pick = np.arange(len(missing))[:, None]
+        R[missing], t[missing] = Rm[pick, idx], tm[pick, idx]
     return R, t
 
 

@@ -160,6 +160,8 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     out[one] = valid[one]
     multi = np.flatnonzero(nvalid > 1)
     if multi.size == 0:
+        if free is not None:
+            free.append(out.copy())
         return out
     top = m if max_support is None else max(1, min(m, int(max_support)))
     Qm, qm, vm = Q[multi], q[multi], valid[multi]
