@@ -424,7 +424,7 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     q_all, xx = stats["q"], stats["xx"]
     G = _gram_links(A)
     Gd = G[np.arange(L), np.arange(L)]                                   # (L, 4, 4)
-    err = np.einsum("nj,ljk,nk->ln", xh, Gd, xh, optimize=True) - 2 * q_all.T + xx[None]
+    err = np.einsum("nj,ljk,nk->ln", xh, Gd, xh, optimize=_single_path(xh.shape, Gd.shape)) - 2 * q_all.T + xx[None]
     err = np.where(cand.T, np.maximum(err, 0.0), np.inf)
     pool = POOL if pool is None else pool
     if L > pool:
@@ -469,6 +469,23 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     if details:
         return out, max(total, 0.0), {"cols": cols, "valid": valid, "Q": Q, "q": q, "xx": xx, "wc": wc, "err": err}
     return out, max(total, 0.0)
+
+
+_PATHS: dict = {}
+
+
+def _single_path(xshape, gshape):
+    """The contraction order ``np.einsum(..., optimize=True)`` picks for the single-link errors
+    x̃ᵀ G_ll x̃ of ``_refine`` (N, 4), (L, 4, 4), remembered per shape (the search costs more than
+    the contraction on a vertex sample)."""
+    key = (xshape, gshape)
+    path = _PATHS.get(key)
+    if path is None:
+        x, g = np.empty(xshape), np.empty(gshape)
+        path = _PATHS[key] = np.einsum_path("nj,ljk,nk->ln", x, g, x, optimize=True)[0]
+        while len(_PATHS) > 64:
+            _PATHS.pop(next(iter(_PATHS)))
+    return path
 
 
 def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
