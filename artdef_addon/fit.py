@@ -514,7 +514,8 @@ class FitState:
     fidelity: object = None                   # quality.fidelity(...) figures
 
 
-#: entries of the (fields, clustered fields, probe coordinates) block of :func:`link_motions`' nearest-field search
+#: entries of a chunk's (fields, clustered fields, probe coordinates) block in :func:`link_motions`' nearest-field
+#: search (and its units' vertex displacements): about 32 MB of work arrays however long the capture
 NEAR_BLOCK = 4_000_000
 
 
@@ -539,28 +540,32 @@ def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields
             missing.append(i)
     if missing:
         # a field left out of the clustering (Segmenter.clustered): the motion ν of each link's
-        # medoid unit in the clustered field nearest to it in displacement, all such fields at once
+        # medoid unit in the clustered field nearest to it in displacement; such fields in chunks
+        # (a long capture has thousands), each chunk's nearest fields and motions at once
         missing = np.asarray(missing)
         key = (tuple(int(p) for p in used_fields), tuple(int(field_idx[i]) for i in missing))
         near = getattr(seg, "nearest_field", {}).get(key)
-        if near is None:
-            # (the same for every call of a fit: the relabel and split stages ask again)
-            U = seg.scan.fields()
-            D = U[np.asarray(used_fields)][:, seg.probe].reshape(len(used_fields), -1)
-            X = U[np.asarray(field_idx)[missing][:, None], seg.probe[None, :]].reshape(len(missing), -1)
-            near = np.empty(len(missing), dtype=np.int64)
-            step = max(1, NEAR_BLOCK // max(D.size, 1))
-            for s in range(0, len(missing), step):
-                near[s:s + step] = np.argmin(np.sum((D[None] - X[s:s + step, None]) ** 2, axis=2), axis=1)
-            if hasattr(seg, "nearest_field"):
-                seg.nearest_field = {key: near}     # one entry: a fit asks for one set of fields
+        U = seg.scan.fields()
+        D = None
         units = np.unique(medoids)
         unit_faces = seg.faces[seg.unit_tri[units]]
         rest = rest_geometry(x0, unit_faces)
-        Rm, tm = triangle_motions(fields[missing[:, None, None], unit_faces[None]], rest)   # (M, units, …)
-        idx = np.searchsorted(units, medoids[:, near].T)                                 # (M, L)
-        pick = np.arange(len(missing))[:, None]
-        R[missing], t[missing] = Rm[pick, idx], tm[pick, idx]
+        step = max(1, NEAR_BLOCK // max(len(used_fields) * len(seg.probe) * 3, unit_faces.size * 24, 1))
+        found = np.empty(len(missing), dtype=np.int64) if near is None else near
+        for s in range(0, len(missing), step):
+            chunk = missing[s:s + step]
+            if near is None:
+                # (the same for every call of a fit: the relabel and split stages ask again)
+                if D is None:
+                    D = U[np.asarray(used_fields)][:, seg.probe].reshape(len(used_fields), -1)
+                X = U[np.asarray(field_idx)[chunk][:, None], seg.probe[None, :]].reshape(len(chunk), -1)
+                found[s:s + step] = np.argmin(np.sum((D[None] - X[:, None]) ** 2, axis=2), axis=1)
+            Rm, tm = triangle_motions(fields[chunk[:, None, None], unit_faces[None]], rest)   # (chunk, units, …)
+            idx = np.searchsorted(units, medoids[:, found[s:s + step]].T)                    # (chunk, L)
+            pick = np.arange(len(chunk))[:, None]
+            R[chunk], t[chunk] = Rm[pick, idx], tm[pick, idx]
+        if near is None and hasattr(seg, "nearest_field"):
+            seg.nearest_field = {key: found}      # one entry: a fit asks for one set of fields
     return R, t
 
 
