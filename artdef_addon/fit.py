@@ -795,11 +795,12 @@ def stage_residuals(st: FitState) -> None:
     pl = np.concatenate([np.full(len(v), l) for l, v in enumerate(st.link_vids)]).astype(np.int64)
     pv = np.concatenate(st.link_vids).astype(np.int64)
     per_link = np.maximum(np.bincount(pl, minlength=L), 1)
+    links = _model.skin_links(weights)           # the vertices each link moves, found once for all fields
     for i in range(P):
         x1 = x0 + fields[i]
-        art = _model.skin(weights, st.Rf[i], st.tf[i], x0)
+        art = _model.skin(weights, st.Rf[i], st.tf[i], x0, links)
         residual[i] = _model.rest_space_residual(weights, st.Rf[i], st.tf[i], x0, x1, art=art)
-        back = _model.skin(weights, st.Rf[i], st.tf[i], x0 + residual[i])
+        back = _model.skin(weights, st.Rf[i], st.tf[i], x0 + residual[i], links)
         art_err[i] = np.sum((art - x1) ** 2)
         tot_err[i] = np.sum((back - x1) ** 2)
         # rigid-motion residual of each link's own motion over its vertices (fit quality)
