@@ -37,7 +37,7 @@ from . import quality as _quality
 from . import splits as _splits
 from . import swaps as _swaps
 from .blas import single_threaded
-from .metric import worker_count, field_features, rest_geometry
+from .metric import worker_count, field_features, rest_geometry, triangle_motions
 from .scan import Scan, ScanError, validate_scan
 from .skinning import alternate, blend_weights, field_sample, vertex_sample
 
@@ -192,6 +192,8 @@ class Segmenter:
         # distance sums of clusters, reused when the same scan is segmented again (link sweeps);
         # filled from the second segmentation on, so a single fit holds no extra memory
         self.sum_cache = _merge.SumCache()
+        # each unclustered field's nearest clustered field (link_motions), by the fields' ids
+        self.nearest_field = {}
         self._segmentations = 0
         self.notes = []
         T = scan.n_faces
@@ -512,6 +514,11 @@ class FitState:
     fidelity: object = None                   # quality.fidelity(...) figures
 
 
+#: entries of a chunk's (fields, clustered fields, probe coordinates) block in :func:`link_motions`' nearest-field
+#: search (and its units' vertex displacements): about 32 MB of work arrays however long the capture
+NEAR_BLOCK = 4_000_000
+
+
 def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields, field_idx):
     """Link motions ``R (P, L, 3, 3)``, ``t (P, L, 3)`` (§6): ``"lsq"``: least squares over each
     link's triangles; else the robust one, the motion ν of each link's medoid unit (Eq. 4)
@@ -523,24 +530,42 @@ def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields
     R = np.tile(np.eye(3), (P, L, 1, 1))
     t = np.zeros((P, L, 3))
     col = {p: i for i, p in enumerate(used_fields)}
-    rest = None
+    missing = []
     for i, p in enumerate(field_idx):
         if p in col:
             m = medoids[:, col[p]]
             R[i] = seg.features[p].R[m]
             t[i] = seg.features[p].t[m]
         elif seg.features[p] is None and len(used_fields):
-            # a field left out of the clustering (Segmenter.clustered): the motion ν of each link's
-            # medoid unit in the clustered field nearest to it in displacement
-            if rest is None:
-                U = seg.scan.fields()
-                D = U[np.asarray(used_fields)][:, seg.probe].reshape(len(used_fields), -1)
-                units = np.unique(medoids)
-                rest = rest_geometry(x0, seg.faces[seg.unit_tri[units]])
-            near = int(np.argmin(np.sum((D - U[p][seg.probe].reshape(1, -1)) ** 2, axis=1)))
-            f = field_features(x0, fields[i], seg.faces[seg.unit_tri[units]], rest)
-            idx = np.searchsorted(units, medoids[:, near])
-            R[i], t[i] = f.R[idx], f.t[idx]
+            missing.append(i)
+    if missing:
+        # a field left out of the clustering (Segmenter.clustered): the motion ν of each link's
+        # medoid unit in the clustered field nearest to it in displacement; such fields in chunks
+        # (a long capture has thousands), each chunk's nearest fields and motions at once
+        missing = np.asarray(missing)
+        key = (tuple(int(p) for p in used_fields), tuple(int(field_idx[i]) for i in missing))
+        near = getattr(seg, "nearest_field", {}).get(key)
+        U = seg.scan.fields()
+        D = None
+        units = np.unique(medoids)
+        unit_faces = seg.faces[seg.unit_tri[units]]
+        rest = rest_geometry(x0, unit_faces)
+        step = max(1, NEAR_BLOCK // max(len(used_fields) * len(seg.probe) * 3, unit_faces.size * 24, 1))
+        found = np.empty(len(missing), dtype=np.int64) if near is None else near
+        for s in range(0, len(missing), step):
+            chunk = missing[s:s + step]
+            if near is None:
+                # (the same for every call of a fit: the relabel and split stages ask again)
+                if D is None:
+                    D = U[np.asarray(used_fields)][:, seg.probe].reshape(len(used_fields), -1)
+                X = U[np.asarray(field_idx)[chunk][:, None], seg.probe[None, :]].reshape(len(chunk), -1)
+                found[s:s + step] = np.argmin(np.sum((D[None] - X[:, None]) ** 2, axis=2), axis=1)
+            Rm, tm = triangle_motions(fields[chunk[:, None, None], unit_faces[None]], rest)   # (chunk, units, …)
+            idx = np.searchsorted(units, medoids[:, found[s:s + step]].T)                    # (chunk, L)
+            pick = np.arange(len(chunk))[:, None]
+            R[chunk], t[chunk] = Rm[pick, idx], tm[pick, idx]
+        if near is None and hasattr(seg, "nearest_field"):
+            seg.nearest_field = {key: found}      # one entry: a fit asks for one set of fields
     return R, t
 
 
@@ -770,11 +795,12 @@ def stage_residuals(st: FitState) -> None:
     pl = np.concatenate([np.full(len(v), l) for l, v in enumerate(st.link_vids)]).astype(np.int64)
     pv = np.concatenate(st.link_vids).astype(np.int64)
     per_link = np.maximum(np.bincount(pl, minlength=L), 1)
+    links = _model.skin_links(weights)           # the vertices each link moves, found once for all fields
     for i in range(P):
         x1 = x0 + fields[i]
-        art = _model.skin(weights, st.Rf[i], st.tf[i], x0)
-        residual[i] = _model.rest_space_residual(weights, st.Rf[i], st.tf[i], x0, x1)
-        back = _model.skin(weights, st.Rf[i], st.tf[i], x0 + residual[i])
+        art = _model.skin(weights, st.Rf[i], st.tf[i], x0, links)
+        residual[i] = _model.rest_space_residual(weights, st.Rf[i], st.tf[i], x0, x1, art=art)
+        back = _model.skin(weights, st.Rf[i], st.tf[i], x0 + residual[i], links)
         art_err[i] = np.sum((art - x1) ** 2)
         tot_err[i] = np.sum((back - x1) ** 2)
         # rigid-motion residual of each link's own motion over its vertices (fit quality)

@@ -17,7 +17,7 @@ import hashlib
 
 import numpy as np
 
-from .metric import FieldFeatures, cross_sums, distance_block, distance_row_sums
+from .metric import FieldFeatures, cross_sums, distance_block, distance_row_sums, row_medians
 
 
 def field_weights(features: list[FieldFeatures]) -> np.ndarray:
@@ -288,7 +288,7 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
             med = np.empty(len(pool))
             step = max(1, 2_000_000 // max(len(ref), 1))
             for i0 in range(0, len(pool), step):
-                med[i0:i0 + step] = np.median(distance_block(f, pool[i0:i0 + step], ref), axis=1)
+                med[i0:i0 + step] = row_medians(distance_block(f, pool[i0:i0 + step], ref))
             # ties (a whole rigid core at zero) go to the smallest sum, i.e. deepest in the core
             cand = np.flatnonzero(med <= med.min() + 1e-12 * max(med.max(), 1e-300))
             if len(cand) > 1:

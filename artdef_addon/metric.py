@@ -120,6 +120,18 @@ def field_features(x0: np.ndarray, u: np.ndarray, faces: np.ndarray,
     return FieldFeatures(R, t, c0, c1, s, K, r_self, disp, g, fa)
 
 
+def triangle_motions(U: np.ndarray, rest: RestGeometry):
+    """The motions ν = (R, t) of :func:`field_features` alone, for the displacements ``U`` (..., T, 3, 3)
+    of each triangle's vertices in any number of fields: R (..., T, 3, 3), t (..., T, 3) (Eq. 4)."""
+    um = U.mean(axis=-2)
+    c1 = rest.c0 + um
+    d1 = rest.d0 + (U - um[..., None, :])
+    R1, _ = frames_from_offsets(d1)
+    R = np.matmul(R1, np.swapaxes(rest.R0, -1, -2))
+    t = c1 - np.einsum("...ij,...j->...i", R, np.broadcast_to(rest.c0, c1.shape))
+    return R, t
+
+
 def residuals(f: FieldFeatures, rows, cols) -> np.ndarray:
     """r(b→a) for b in ``rows`` (motions) and a in ``cols`` (triangles): (len(rows), len(cols))."""
     r2 = f.g[rows] @ f.f[cols].T
@@ -139,6 +151,18 @@ def distance_block(f: FieldFeatures, rows, cols) -> np.ndarray:
     np.abs(b, out=b)
     a += b
     return a
+
+
+def row_medians(a: np.ndarray) -> np.ndarray:
+    """``np.median(a, axis=1)`` of a finite (n, r) block, to the bit, about 5x faster: one
+    partition at the upper middle, whose lower part's maximum is the lower middle (np.median
+    partitions at both and checks for NaN)."""
+    r = a.shape[1]
+    h = r // 2
+    part = np.partition(a, h, axis=1)
+    if r % 2:
+        return part[:, h].copy()
+    return (part[:, :h].max(axis=1) + part[:, h]) / 2
 
 
 def worker_count() -> int:

@@ -104,14 +104,22 @@ def params_from_motions(parents, heads, frames, grounded, R, t) -> np.ndarray:
     return out
 
 
-def skin(weights, R, t, x) -> np.ndarray:
-    """Linear blend skinning Σ_l w_l (R_l x + t_l) for one pose; ``x`` (N,3)."""
+def skin(weights, R, t, x, links=None) -> np.ndarray:
+    """Linear blend skinning Σ_l w_l (R_l x + t_l) for one pose; ``x`` (N,3), ``R`` (L,3,3), ``t`` (L,3).
+    ``links``: :func:`skin_links` of ``weights`` when skinning many poses with them."""
     out = np.zeros_like(x)
-    for l in range(weights.shape[1]):
-        w = weights[:, l]
-        nz = np.flatnonzero(w)
+    for l, (nz, w) in enumerate(skin_links(weights) if links is None else links):
         if nz.size:
-            out[nz] += w[nz, None] * (x[nz] @ R[l].T + t[l])
+            out[nz] += w[:, None] * (x[nz] @ R[l].T + t[l])
+    return out
+
+
+def skin_links(weights) -> list:
+    """Each link's (vertex ids (n_l,), their weights (n_l,)) of ``weights`` (N, L): what it moves."""
+    out = []
+    for l in range(weights.shape[1]):
+        nz = np.flatnonzero(weights[:, l])
+        out.append((nz, weights[nz, l]))
     return out
 
 
@@ -120,9 +128,10 @@ def blended_linear(weights, R) -> np.ndarray:
     return np.einsum("nl,lij->nij", weights, R)
 
 
-def rest_space_residual(weights, R, t, x0, x1) -> np.ndarray:
-    """δ with Σ_l w_l G_l (x0 + δ) = x1 exactly (METHOD §8 residual basis, in rest space)."""
-    art = skin(weights, R, t, x0)
+def rest_space_residual(weights, R, t, x0, x1, art=None) -> np.ndarray:
+    """δ (N, 3) with Σ_l w_l G_l (x0 + δ) = x1 exactly (METHOD §8 residual basis, in rest space).
+    ``art``: :func:`skin` of ``x0`` when the caller has it already."""
+    art = skin(weights, R, t, x0) if art is None else art
     Bv = blended_linear(weights, R)
     rhs = x1 - art
     det = np.linalg.det(Bv)

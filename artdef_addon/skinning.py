@@ -48,11 +48,14 @@ def blend_weights(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n
 
 
 def _kkt_solve(Q, q, P):
-    """Minimiser of wᵀQw − 2qᵀw subject to Σw = 1 and w = 0 off the rows' sets ``P`` (B, m)."""
+    """Minimiser of wᵀQw − 2qᵀw subject to Σw = 1 and w = 0 off the rows' sets ``P`` (B, m).
+
+    Q (B, m, m), q (B, m) → (B, m): one (m+1)-square KKT system a row, [[2Q, 1], [1ᵀ, 0]] on the
+    set and an identity row off it (LAPACK; the pseudo-inverse if a system is singular)."""
     B, m = q.shape
     Pf = P.astype(np.float64)
     K = np.empty((B, m + 1, m + 1))
-    K[:, :m, :m] = Q * (2.0 * (Pf[:, :, None] * Pf[:, None, :]))
+    np.multiply(Q, (2.0 * Pf)[:, :, None] * Pf[:, None, :], out=K[:, :m, :m])
     idx = np.arange(m)
     K[:, idx, idx] += 1.0 - Pf          # w = 0 off the set
     K[:, :m, m] = Pf
@@ -117,23 +120,26 @@ def _active_set(Q, q, valid, max_rounds, w0=None):
         if several.size:
             settle(several)
     done = np.zeros(B, dtype=bool)
-    for _ in range(max_rounds):
-        g = 2 * (np.einsum("nab,nb->na", Q, w) - q)
-        lam = np.einsum("na,na->n", g, w)
-        viol = np.where(valid & ~P, g - lam[:, None], np.inf)
+    live = rows                         # rows still adding links (a row that stops is done for good)
+    for r in range(max_rounds):
+        Ql, ql, Pl, wl = (Q, q, P, w) if r == 0 else (Q[live], q[live], P[live], w[live])
+        g = 2 * (np.einsum("nab,nb->na", Ql, wl) - ql)
+        lam = np.einsum("na,na->n", g, wl)
+        viol = np.where(valid[live] & ~Pl, g - lam[:, None], np.inf)
         j = viol.argmin(axis=1)
-        act = ~done & (viol[rows, j] < -1e-10 * scale)
-        done |= ~act
-        a = np.flatnonzero(act)
-        if a.size == 0:
+        act = viol[np.arange(live.size), j] < -1e-10 * scale[live]
+        done[live[~act]] = True
+        live = live[act]
+        if live.size == 0:
             break
-        P[a, j[a]] = True
-        settle(a)
+        P[live, j[act]] = True
+        settle(live)
     return w, done
 
 
 def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
-                          max_support: int | None = None, w0: np.ndarray | None = None) -> np.ndarray:
+                          max_support: int | None = None, w0: np.ndarray | None = None,
+                          free: list | None = None) -> np.ndarray:
     """Minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries,
     with at most ``max_support`` non-zero weights (default: no limit).
 
@@ -144,7 +150,8 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     their own — or the ``max_support`` candidates that fit best alone, whichever is better (so
     never worse than choosing the links by their single fit). Rows with a single valid candidate
     get weight 1 on it without a solve. ``w0`` (N, m): feasible weights to start the active set
-    from (the result does not depend on it where the optimum is unique).
+    from (the result does not depend on it where the optimum is unique). ``free``: a list to which
+    the convex optimum (N, m) (no support limit) is appended — the next round's best start.
     """
     N, m = q.shape
     out = np.zeros((N, m))
@@ -153,31 +160,41 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     out[one] = valid[one]
     multi = np.flatnonzero(nvalid > 1)
     if multi.size == 0:
+        if free is not None:
+            free.append(out.copy())
         return out
     top = m if max_support is None else max(1, min(m, int(max_support)))
     Qm, qm, vm = Q[multi], q[multi], valid[multi]
     w, done = _active_set(Qm, qm, vm, max_rounds=3 * m, w0=None if w0 is None else w0[multi])
+    if free is not None:
+        wf = out.copy()
+        wf[multi] = w
+        free.append(wf)
     over = np.flatnonzero(~done | (np.count_nonzero(w > 0, axis=1) > top))
     if over.size:
-        Qo, qo = Qm[over], qm[over]
-        alone = np.where(vm[over], np.einsum("nii->ni", Qo) - 2 * qo, np.inf)
-        best = None
-        for score in (-w[over], alone):
+        Qo, qo, vo, wo = Qm[over], qm[over], vm[over], w[over]
+        alone = np.where(vo, np.einsum("nii->ni", Qo) - 2 * qo, np.inf)
+        subs = []
+        for score in (-wo, alone):
             keep = np.argsort(score, axis=1, kind="stable")[:, :top]
             sub = np.zeros((over.size, m), dtype=bool)
             np.put_along_axis(sub, keep, True, axis=1)
-            sub &= vm[over]
-            # warm start from the convex optimum's weights on the kept links (feasible there, and
-            # usually the limited optimum's support already): fewer active-set steps, same optimum
-            ws, _ = _active_set(Qo, qo, sub, max_rounds=3 * top, w0=np.where(sub, w[over], 0.0))
-            ws = np.maximum(ws, 0.0)
-            ws /= ws.sum(axis=1, keepdims=True)
-            obj = np.einsum("na,nab,nb->n", ws, Qo, ws) - 2 * np.einsum("na,na->n", qo, ws)
-            if best is None:
-                best, best_obj = ws, obj
-            else:
-                better = obj < best_obj
-                best[better] = ws[better]
+            subs.append(sub & vo)
+        # both choices solved in one batch (rows are independent); a row whose two choices keep
+        # the same links is solved once (the same problem from the same start)
+        other = np.flatnonzero((subs[0] != subs[1]).any(axis=1))
+        pick = np.concatenate([np.arange(over.size), other])
+        sub = np.concatenate([subs[0], subs[1][other]])
+        Qs, qs = Qo[pick], qo[pick]
+        # warm start from the convex optimum's weights on the kept links (feasible there, and
+        # usually the limited optimum's support already): fewer active-set steps, same optimum
+        ws, _ = _active_set(Qs, qs, sub, max_rounds=3 * top, w0=np.where(sub, wo[pick], 0.0))
+        ws = np.maximum(ws, 0.0)
+        ws /= ws.sum(axis=1, keepdims=True)
+        obj = np.einsum("na,nab,nb->n", ws, Qs, ws) - 2 * np.einsum("na,na->n", qs, ws)
+        best = ws[:over.size]
+        better = obj[over.size:] < obj[other]
+        best[other[better]] = ws[over.size:][better]
         w[over] = best
     w = np.maximum(w, 0.0)
     out[multi] = w / w.sum(axis=1, keepdims=True)
@@ -380,7 +397,7 @@ POOL = 8
 
 
 def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, ground=None,
-            radius=None, cand=None, details=False, pool=None, w_init=None):
+            radius=None, cand=None, details=False, pool=None, w_init=None, w_free=None, free_out=None):
     """:func:`refined_weights` plus the total squared articulation error of the result.
 
     ``cand`` is the candidate matrix when the caller already has it (it depends on the labels
@@ -388,6 +405,9 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     vertex's candidate links ``cols`` (N, m), its normal equations ``Q`` (N, m, m), ``q`` (N, m),
     ``xx`` (N,), its weights on the candidates ``wc`` (N, m) and the single-link errors ``err``
     (L, N) (inf off the candidates) — what :mod:`swaps` needs to price removing a link.
+    ``w_free`` (N, L): the previous round's convex optimum (no influence limit) to start the
+    active set from instead of ``w_init`` (it differs from this round's by the motions' change
+    only, so few links enter or leave); ``free_out``: a dict that receives this round's, "w" (N, L).
     """
     N = vertices.shape[0]
     P = R.shape[0]
@@ -404,7 +424,7 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     q_all, xx = stats["q"], stats["xx"]
     G = _gram_links(A)
     Gd = G[np.arange(L), np.arange(L)]                                   # (L, 4, 4)
-    err = np.einsum("nj,ljk,nk->ln", xh, Gd, xh, optimize=True) - 2 * q_all.T + xx[None]
+    err = np.einsum("nj,ljk,nk->ln", xh, Gd, xh, optimize=_single_path(xh.shape, Gd.shape)) - 2 * q_all.T + xx[None]
     err = np.where(cand.T, np.maximum(err, 0.0), np.inf)
     pool = POOL if pool is None else pool
     if L > pool:
@@ -423,7 +443,9 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     # the same weights as one batch); kept whole only when the details are asked for (swaps, which
     # run on small scans only)
     q = np.take_along_axis(q_all, cols, axis=1)
-    w0 = None if w_init is None else np.take_along_axis(w_init, cols, axis=1) * valid
+    start = w_init if w_free is None else w_free
+    w0 = None if start is None else np.take_along_axis(start, cols, axis=1) * valid
+    free = None if free_out is None else []
     out = np.zeros((N, L))
     wc = np.zeros((N, m))
     block = N if details else SOLVE_BLOCK
@@ -433,16 +455,37 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
         e = min(N, s + block)
         Qb = Q[s:e] if details else _pair_quadratic(xh[s:e], G, cols[s:e])
         wb = simplex_least_squares(Qb, q[s:e], valid[s:e], max_support=max_influences,
-                                   w0=None if w0 is None else w0[s:e])
+                                   w0=None if w0 is None else w0[s:e], free=free)
         wb[wb < 1e-6] = 0.0
         wb /= wb.sum(axis=1, keepdims=True)
         wc[s:e] = wb
         total += float(np.sum(np.einsum("na,nab,nb->n", wb, Qb, wb) - 2 * np.einsum("na,na->n", q[s:e], wb)
                               + xx[s:e]))
     np.put_along_axis(out, cols, wc, axis=1)
+    if free_out is not None:
+        wf = np.zeros((N, L))
+        np.put_along_axis(wf, cols, np.concatenate(free), axis=1)
+        free_out["w"] = wf
     if details:
         return out, max(total, 0.0), {"cols": cols, "valid": valid, "Q": Q, "q": q, "xx": xx, "wc": wc, "err": err}
     return out, max(total, 0.0)
+
+
+_PATHS: dict = {}
+
+
+def _single_path(xshape, gshape):
+    """The contraction order ``np.einsum(..., optimize=True)`` picks for the single-link errors
+    x̃ᵀ G_ll x̃ of ``_refine`` (N, 4), (L, 4, 4), remembered per shape (the search costs more than
+    the contraction on a vertex sample)."""
+    key = (xshape, gshape)
+    path = _PATHS.get(key)
+    if path is None:
+        x, g = np.empty(xshape), np.empty(gshape)
+        path = _PATHS[key] = np.einsum_path("nj,ljk,nk->ln", x, g, x, optimize=True)[0]
+        while len(_PATHS) > 64:
+            _PATHS.pop(next(iter(_PATHS)))
+    return path
 
 
 def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,
@@ -578,10 +621,14 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
         if kw.get("ground") is not None:
             kw["ground"] = kw["ground"][rows]
     fields = _Flat.of(vertices, fields)
-    w, e, *info = _refine(vertices, fields, faces, labels, R, t, w_init=w_init, **kw)
+    free = {}
+    w, e, *info = _refine(vertices, fields, faces, labels, R, t, w_init=w_init, free_out=free, **kw)
     for i in range(iterations):
         R1, t1 = update_motions(vertices, fields, w, R, t)
-        w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, w_init=w, **kw)
+        # the weight solve starts from the last round's convex optimum (fewer active-set steps)
+        free1 = {}
+        w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, w_init=w, w_free=free["w"],
+                                 free_out=free1, **kw)
         if e1 > e:      # round-off only: keep the better pair
             break
         done = e - e1 <= tol * e
@@ -590,7 +637,7 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
         hopeless = target is not None and e1 - GIVE_UP_SLACK * (e - e1) * (iterations - 1 - i) > target
         if far is not None and target is not None and i + 1 >= far[0] and e1 > far[1] * target:
             hopeless = True     # still far above the target after far[0] rounds (splits.FAR)
-        w, R, t, e, info = w1, R1, t1, e1, info1
+        w, R, t, e, info, free = w1, R1, t1, e1, info1, free1
         if done or hopeless:
             break
     return (w, R, t, e, *info)

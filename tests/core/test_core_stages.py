@@ -58,6 +58,58 @@ def test_epsilon_gemm_matches_definition_and_is_symmetric():
     assert np.allclose(full[np.ix_(idx, idx)], block - np.diag(np.diag(block)), atol=1e-9)
 
 
+@pytest.mark.parametrize("width", [1, 2, 7, 50, 51])
+def test_row_medians_are_numpys_medians_to_the_bit(width):
+    """The link medoids' row medians (one partition at the upper middle) are np.median's, exactly:
+    the medoid choice must not move (ties included: a rigid core's zero distances)."""
+    rng = np.random.default_rng(width)
+    a = rng.random((30, width))
+    a[:10] = np.round(a[:10], 1)          # repeated values
+    a[10:13] = 0.0                       # a rigid core
+    assert np.array_equal(metric.row_medians(a), np.median(a, axis=1))
+
+
+def test_triangle_motions_are_the_field_features_motions():
+    """ν = (R, t) of many fields at once (the fields left out of the clustering) equal each field's
+    own :func:`metric.field_features` motions to the bit."""
+    scan = samples.make("branching", noise=0.02, bulges=True)
+    faces = scan.faces[::3]
+    rest = metric.rest_geometry(scan.vertices, faces)
+    U = scan.displacements[:, faces]                                   # (P, T, 3, 3)
+    R, t = metric.triangle_motions(U, rest)
+    for p in range(scan.displacements.shape[0]):
+        f = metric.field_features(scan.vertices, scan.displacements[p], faces, rest)
+        assert np.array_equal(R[p], f.R) and np.array_equal(t[p], f.t)
+
+
+def test_link_motions_of_unclustered_fields_are_their_medoid_units_motions(monkeypatch):
+    """A scan with more fields than the segmentation clusters: every other field's link motion is
+    the motion ν (field_features) of the link's medoid unit in the clustered field nearest to it in
+    displacement — the same arrays whether those fields are done one at a time or in one chunk."""
+    monkeypatch.setattr(F, "SEGMENT_FIELDS", 4)
+    scan = samples.make("branching", n_fields=12, noise=0.01)
+    seg = F.Segmenter(scan)
+    assert len(seg.clustered) == 4
+    labels, medoids, used = seg.segment(11)
+    idx = np.arange(scan.n_fields)
+    fields = scan.fields()
+    args = (scan.vertices, fields, scan.faces, seg.full_labels(labels), medoids.shape[0], "robust", seg, medoids,
+            used, idx)
+    R, t = F.link_motions(*args)
+    monkeypatch.setattr(F, "NEAR_BLOCK", 1)            # one field a chunk, the nearest fields searched again
+    seg.nearest_field = {}
+    R1, t1 = F.link_motions(*args)
+    assert np.array_equal(R, R1) and np.array_equal(t, t1)
+    units = np.unique(medoids)
+    unit_faces = seg.faces[seg.unit_tri[units]]
+    D = fields[np.asarray(used)][:, seg.probe].reshape(len(used), -1)
+    for p in sorted(set(idx) - set(used)):
+        near = np.argmin(np.sum((D - fields[p][seg.probe].reshape(1, -1)) ** 2, axis=1))
+        f = metric.field_features(scan.vertices, fields[p], unit_faces)
+        k = np.searchsorted(units, medoids[:, near])
+        assert np.array_equal(R[p], f.R[k]) and np.array_equal(t[p], f.t[k])
+
+
 def test_average_linkage_heights_monotone():
     scan = samples.make("rod")
     f = metric.field_features(scan.vertices, scan.displacements[0], scan.faces)

@@ -74,6 +74,31 @@ def test_simplex_least_squares_with_an_influence_limit(rank):
     assert exact >= 3
 
 
+def test_simplex_least_squares_hands_back_its_convex_optimum_as_the_next_start():
+    """``free`` receives the convex optimum (the weights without the influence limit); started from
+    it, the limited solve gives the same weights as from a cold start (what the alternation's warm
+    start relies on), and a batch of single-candidate rows hands back their one weight."""
+    rng = np.random.default_rng(5)
+    N, m = 80, 8
+    A = rng.normal(size=(N, 12, m))
+    b = rng.normal(size=(N, 12))
+    Q = np.einsum("nka,nkb->nab", A, A)
+    q = np.einsum("nka,nk->na", A, b)
+    valid = rng.random((N, m)) > 0.25
+    valid[:, 0] = True
+    free = []
+    w = skinning.simplex_least_squares(Q, q, valid, max_support=4, free=free)
+    assert np.allclose(free[0], skinning.simplex_least_squares(Q, q, valid), atol=1e-12)
+    assert ((free[0] > 0).sum(1) > 4).any()              # the limit binds on some rows
+    warm = skinning.simplex_least_squares(Q, q, valid, max_support=4, w0=free[0])
+    assert np.allclose(warm, w, atol=1e-10)
+    one = np.zeros((3, m), dtype=bool)
+    one[:, 2] = True
+    free = []
+    skinning.simplex_least_squares(Q[:3], q[:3], one, max_support=4, free=free)
+    assert np.array_equal(free[0], one.astype(float))
+
+
 def test_refined_skin_reproduces_a_rig_from_its_true_motions():
     """RobotExpressive's fresh LBS poses with the true links and the true bone motions: the refined
     weights reproduce the poses (Karni–Gotsman error below 0.001 %). Choosing each vertex's four
