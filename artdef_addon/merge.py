@@ -314,17 +314,22 @@ SAMPLE = True
 RELABEL_ROUNDS = 5
 
 
-def dominant_faces(w, faces, labels, units=None, k=None):
+def dominant_faces(w, faces, labels, units=None, k=None, keep_units_only=False):
     """Each face's link of largest summed skin weight ``w (N, L)`` over its corners (the first ``k``
     columns, default all); where a link would be left without a face (or without a face of ``units``)
-    its faces keep their ``labels (T,)``. The relabelling's, the splits' and the grown links' rule."""
+    its faces keep their ``labels (T,)`` — with ``keep_units_only`` only its faces of ``units`` (the
+    rest go by the skin). The relabelling's, the splits' and the grown links' rule."""
     k = w.shape[1] if k is None else k
     new = w[faces, :k].sum(axis=1).argmax(axis=1)
+    mine = np.ones(len(labels), dtype=bool)       # faces a starved link takes back
+    if units is not None and keep_units_only:
+        mine[:] = False
+        mine[units] = True
     for _ in range(k):
         owned = np.bincount(new if units is None else new[units], minlength=k) > 0
         if owned.all():
             break
-        keep = ~owned[labels]
+        keep = ~owned[labels] & mine
         new[keep] = labels[keep]
     return new
 

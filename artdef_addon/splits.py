@@ -14,8 +14,12 @@ A split trial
 1. takes one of the ``SPLIT_CANDIDATES`` links whose vertices hold most of E and cuts its faces in two at the
    median of their centroids along the link's principal axis (a chain of two segments is cut near
    their joint; the decomposition and the relabelling below move the seam to where the skin puts it);
-2. drops one of the ``DROP_CANDIDATES`` links cheapest to remove (:func:`swaps.removal_costs`), its
-   faces going to their best other candidate link, and gives its index to the cut's far half;
+2. drops one of the ``DROP_CANDIDATES`` links cheapest to remove (:func:`swaps.removal_costs`), the
+   smallest link, the smallest once faces go to the link dominating the skin (a link the skin no
+   longer needs is a sliver there), or — for the ``NEIGHBOUR_DROPS`` cut links holding most error —
+   the cut link's neighbour cheapest to remove (where a chain's seams are shifted, the bone held by
+   two links is next to the link holding two bones); its faces go to their best other candidate
+   link and its index to the cut's far half;
 3. starts both halves from the least-squares motions of their faces (Kabsch/Arun, METHOD §6) and
    runs ``swaps.TRIAL_ROUNDS`` rounds of the decomposition.
 
@@ -46,6 +50,8 @@ SAMPLE_SHARE = 0.8
 #: RobotExpressive's fresh poses (seeds 6, 9, 10, 12, 14, 23), the wolf and cheburashka every kept
 #: trial stood at most 3.0 x its target after 3 rounds, the losing ones at 12-47 x (CesiumMan's ~150 x)
 FAR = (3, 8.0)
+#: the first this many cut links (by the error they hold) are also tried with their neighbour cheapest to drop
+NEIGHBOUR_DROPS = 1
 #: rounds of splits at most (each keeps one)
 MAX_SPLITS = 4
 
@@ -116,13 +122,23 @@ def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: n
         vert_link[faces.reshape(-1), np.repeat(labels, 3)] = True
         held = cur @ vert_link                                    # (L,) E on each link's vertices
         drops = [int(l) for l in np.argsort(cost)[:DROP_CANDIDATES] if np.isfinite(cost[l])]
-        small = int(np.argmin(np.bincount(labels, minlength=L)))
-        if small not in drops:
-            drops.append(small)
+        # the smallest link, and the smallest once faces go to the link dominating the skin: a link
+        # the skin no longer needs shows as a sliver there
+        dom = dominant_faces(w, faces, labels, units, keep_units_only=True)
+        for lab in (labels, dom):
+            small = int(np.argmin(np.bincount(lab, minlength=L)))
+            if small not in drops:
+                drops.append(small)
         cands = [int(l) for l in np.argsort(-held)[:SPLIT_CANDIDATES]]
+        near = (vert_link.T.astype(np.int64) @ vert_link) > 0             # (L, L) links sharing a vertex
         best = None
-        for s in cands:
-            for d in drops:
+        for i, s in enumerate(cands):
+            # and for the first NEIGHBOUR_DROPS cut links, their neighbour cheapest to drop: where a
+            # chain's seams are shifted, the bone split over two links is next to the link holding two
+            nb = np.flatnonzero(near[s] & np.isfinite(cost))
+            nb = nb[nb != s]
+            extra = [int(nb[np.argmin(cost[nb])])] if i < NEIGHBOUR_DROPS and nb.size else []
+            for d in drops + [x for x in extra if x not in drops]:
                 if d == s:
                     continue
                 new = reassign_faces(labels, d, faces, info["err"][:L], fallback=s)

@@ -313,6 +313,9 @@ def test_refined_skin_fits_joints_of_fully_blended_links(monkeypatch):
     bones = np.unique(gl)
     truth = np.searchsorted(bones, gl)
     monkeypatch.setattr(merge, "dominant_labels", lambda *a, **k: (truth.copy(), 0))
+    # and the labels stay the true ones to the end (the faces do not follow the fitted skin, which
+    # moves a few seam faces of the true labels): the joints alone are under test here
+    monkeypatch.setattr(F, "_dominant_skin_labels", lambda st: None)
     diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
     within = {}
     for skin in ("seam", "refined"):
