@@ -15,8 +15,7 @@ A split trial
    median of their centroids along the link's principal axis (a chain of two segments is cut near
    their joint; the decomposition and the relabelling below move the seam to where the skin puts it);
 2. drops one of the ``DROP_CANDIDATES`` links cheapest to remove (:func:`swaps.removal_costs`), the
-   smallest link, the smallest once faces go to the link dominating the skin (a link the skin no
-   longer needs is a sliver there), or — for the ``NEIGHBOUR_DROPS`` cut links holding most error —
+   smallest link, the link the skin uses least (its summed weight per vertex of its own faces), or — for the ``NEIGHBOUR_DROPS`` cut links holding most error —
    the cut link's neighbour cheapest to remove (where a chain's seams are shifted, the bone held by
    two links is next to the link holding two bones); its faces go to their best other candidate
    link and its index to the cut's far half;
@@ -122,11 +121,11 @@ def split_links(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: n
         vert_link[faces.reshape(-1), np.repeat(labels, 3)] = True
         held = cur @ vert_link                                    # (L,) E on each link's vertices
         drops = [int(l) for l in np.argsort(cost)[:DROP_CANDIDATES] if np.isfinite(cost[l])]
-        # the smallest link, and the smallest once faces go to the link dominating the skin: a link
-        # the skin no longer needs shows as a sliver there
-        dom = dominant_faces(w, faces, labels, units, keep_units_only=True)
-        for lab in (labels, dom):
-            small = int(np.argmin(np.bincount(lab, minlength=L)))
+        # the smallest link, and the link the skin uses least: its summed weight per vertex of its own
+        # faces (a link the skin no longer needs, a sliver or a palm patch of bits of several bones,
+        # weighs about 0.1 there where the others weigh about 0.5)
+        used = w[:, :L].sum(axis=0) / np.maximum(vert_link.sum(axis=0), 1)
+        for small in (int(np.argmin(np.bincount(labels, minlength=L))), int(np.argmin(used))):
             if small not in drops:
                 drops.append(small)
         cands = [int(l) for l in np.argsort(-held)[:SPLIT_CANDIDATES]]
