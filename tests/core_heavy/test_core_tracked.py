@@ -10,15 +10,20 @@ from artdef_addon import files, fit as F, joints, linkcount, quality, samples, s
 DATA = Path(__file__).parent.parent / "data"
 
 
-def test_simplex_least_squares_is_exact():
-    rng = np.random.default_rng(0)
-    N, m = 40, 4
-    A = rng.normal(size=(N, 9, m))
-    b = rng.normal(size=(N, 9))
-    Q = np.einsum("nka,nkb->nab", A, A)
-    q = np.einsum("nka,nk->na", A, b)
-    valid = rng.random((N, m)) > 0.2
+def _random_normal_equations(seed, N, m, k, drop):
+    """A (N, k, m), b (N, k) of random least-squares problems, their normal equations Q (N, m, m),
+    q (N, m) and a validity mask with about ``drop`` of the candidates off (the first always on)."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(N, k, m))
+    b = rng.normal(size=(N, k))
+    valid = rng.random((N, m)) > drop
     valid[:, 0] = True
+    return A, b, np.einsum("nka,nkb->nab", A, A), np.einsum("nka,nk->na", A, b), valid
+
+
+def test_simplex_least_squares_is_exact():
+    N, m = 40, 4
+    A, b, Q, q, valid = _random_normal_equations(0, N, m, 9, 0.2)
     w = skinning.simplex_least_squares(Q, q, valid)
     assert np.allclose(w.sum(1), 1) and (w >= 0).all() and not w[~valid].any()
     for n in range(0, N, 5):
@@ -78,14 +83,8 @@ def test_simplex_least_squares_hands_back_its_convex_optimum_as_the_next_start()
     """``free`` receives the convex optimum (the weights without the influence limit); started from
     it, the limited solve gives the same weights as from a cold start (what the alternation's warm
     start relies on), and a batch of single-candidate rows hands back their one weight."""
-    rng = np.random.default_rng(5)
     N, m = 80, 8
-    A = rng.normal(size=(N, 12, m))
-    b = rng.normal(size=(N, 12))
-    Q = np.einsum("nka,nkb->nab", A, A)
-    q = np.einsum("nka,nk->na", A, b)
-    valid = rng.random((N, m)) > 0.25
-    valid[:, 0] = True
+    _, _, Q, q, valid = _random_normal_equations(5, N, m, 12, 0.25)
     free = []
     w = skinning.simplex_least_squares(Q, q, valid, max_support=4, free=free)
     assert np.allclose(free[0], skinning.simplex_least_squares(Q, q, valid), atol=1e-12)
