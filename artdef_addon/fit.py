@@ -482,6 +482,7 @@ class FitState:
     # motions / relabel
     R: np.ndarray | None = None               # (P, L, 3, 3) link rotations
     t: np.ndarray | None = None               # (P, L, 3) link translations
+    trial_fields: object = None               # the fields the relabel and split trials use (_trial_fields)
     swaps: int | None = 0                     # link swaps made (None: over budget, skipped)
     splits: int = 0                           # links split in two (the split stage)
     # skin
@@ -544,7 +545,7 @@ def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields
         # (a long capture has thousands), each chunk's nearest fields and motions at once
         missing = np.asarray(missing)
         key = (tuple(int(p) for p in used_fields), tuple(int(field_idx[i]) for i in missing))
-        near = getattr(seg, "nearest_field", {}).get(key)
+        near = seg.nearest_field.get(key)
         U = seg.scan.fields()
         D = None
         units = np.unique(medoids)
@@ -564,7 +565,7 @@ def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields
             idx = np.searchsorted(units, medoids[:, found[s:s + step]].T)                    # (chunk, L)
             pick = np.arange(len(chunk))[:, None]
             R[chunk], t[chunk] = Rm[pick, idx], tm[pick, idx]
-        if near is None and hasattr(seg, "nearest_field"):
+        if near is None:
             seg.nearest_field = {key: found}      # one entry: a fit asks for one set of fields
     return R, t
 
@@ -593,12 +594,21 @@ def stage_relabel(st: FitState) -> None:
     if not (_merge.DOMINANT_RELABEL and scan.kind != "greens" and L > 1 and P > 0):
         return
     # only the labels leave this stage: its decompositions may run on a sample of the fields
-    fsel = field_sample(st.fields) if _merge.SAMPLE else None
-    pick = slice(None) if fsel is None else fsel
+    pick = _trial_fields(st)
     new, st.swaps = _merge.dominant_labels(scan.vertices, st.fields[pick], scan.faces, st.labels, st.R[pick],
                                            st.t[pick], units=seg.valid[seg.unit_tri])
     if np.any(new != st.labels):
         _relabelled(st, new)
+
+
+def _trial_fields(st: FitState):
+    """The fields the relabelling's and the split trials' decompositions use: a spread of at most
+    ``skinning.SAMPLE_FIELDS`` of them (:func:`skinning.field_sample`, with ``merge.SAMPLE``) as an
+    index array, or ``slice(None)`` for every field; chosen once per fit."""
+    if st.trial_fields is None:
+        fsel = field_sample(st.fields) if _merge.SAMPLE else None
+        st.trial_fields = slice(None) if fsel is None else fsel
+    return st.trial_fields
 
 
 def _relabelled(st: FitState, labels: np.ndarray) -> None:
@@ -682,14 +692,13 @@ def _split_links(st: FitState) -> None:
     x0, faces = scan.vertices, scan.faces
     # the trials decide labels only where the scan has many fields: then on a spread of them, and
     # the skin is decomposed again on every field from the new labels' robust motions
-    fsel = field_sample(st.fields) if _merge.SAMPLE else None
-    pick = slice(None) if fsel is None else fsel
+    pick = _trial_fields(st)
     labels, w, Rs, ts, st.splits = _splits.split_links(x0, st.fields[pick], faces, st.labels, st.weights,
                                                        st.Rs[pick], st.ts[pick], units=seg.valid[seg.unit_tri])
     if not st.splits:
         return
     _relabelled(st, labels)
-    if fsel is None:     # from the split's own decomposition
+    if isinstance(pick, slice):     # from the split's own decomposition
         _refined_skin(st, Rs, ts, w_init=w)
     else:                # the split's motions cover the sampled fields only: from the robust ones
         _refined_skin(st, st.R, st.t)

@@ -353,11 +353,10 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
     """
     from .joints import lsq_motions
     from .swaps import TRIAL_ROUNDS
-    from .model import skin as lbs
     P, L = R.shape[0], R.shape[1]
     err_v = np.zeros(x0.shape[0])
     for p in range(P):
-        d = lbs(w, R[p], t[p], x0) - (x0 + fields[p])
+        d = skin(w, R[p], t[p], x0) - (x0 + fields[p])
         err_v += np.einsum("ni,ni->n", d, d)
     face_err = err_v[faces].sum(axis=1)
     order = units[np.argsort(-face_err[units], kind="stable")]

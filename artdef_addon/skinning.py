@@ -1,6 +1,8 @@
 """Seam-blended skin weights (paper Eq. 2, "blended linearly" at the seams; METHOD §8, choice A-15)."""
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.sparse import coo_matrix, diags
 
@@ -471,21 +473,13 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     return out, max(total, 0.0)
 
 
-_PATHS: dict = {}
-
-
+@functools.lru_cache(maxsize=64)
 def _single_path(xshape, gshape):
     """The contraction order ``np.einsum(..., optimize=True)`` picks for the single-link errors
     x̃ᵀ G_ll x̃ of ``_refine`` (N, 4), (L, 4, 4), remembered per shape (the search costs more than
     the contraction on a vertex sample)."""
-    key = (xshape, gshape)
-    path = _PATHS.get(key)
-    if path is None:
-        x, g = np.empty(xshape), np.empty(gshape)
-        path = _PATHS[key] = np.einsum_path("nj,ljk,nk->ln", x, g, x, optimize=True)[0]
-        while len(_PATHS) > 64:
-            _PATHS.pop(next(iter(_PATHS)))
-    return path
+    x, g = np.empty(xshape), np.empty(gshape)
+    return np.einsum_path("nj,ljk,nk->ln", x, g, x, optimize=True)[0]
 
 
 def refined_weights(vertices: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray,

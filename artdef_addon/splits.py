@@ -15,10 +15,11 @@ A split trial
    median of their centroids along the link's principal axis (a chain of two segments is cut near
    their joint; the decomposition and the relabelling below move the seam to where the skin puts it);
 2. drops one of the ``DROP_CANDIDATES`` links cheapest to remove (:func:`swaps.removal_costs`), the
-   smallest link, the link the skin uses least (its summed weight per vertex of its own faces), or — for the ``NEIGHBOUR_DROPS`` cut links holding most error —
-   the cut link's neighbour cheapest to remove (where a chain's seams are shifted, the bone held by
-   two links is next to the link holding two bones); its faces go to their best other candidate
-   link and its index to the cut's far half;
+   smallest link, the link the skin uses least (its summed weight per vertex of its own faces), or
+   — for the ``NEIGHBOUR_DROPS`` cut links holding most error — the cut link's neighbour cheapest
+   to remove (where a chain's seams are shifted, the bone held by two links is next to the link
+   holding two bones); its faces go to their best other candidate link and its index to the cut's
+   far half;
 3. starts both halves from the least-squares motions of their faces (Kabsch/Arun, METHOD §6) and
    runs ``swaps.TRIAL_ROUNDS`` rounds of the decomposition.
 
