@@ -49,7 +49,7 @@ SAMPLE_SHARE = 0.8
 #: a trial still this many times above its target after this many rounds is given up: on
 #: RobotExpressive's fresh poses (seeds 6, 9, 10, 12, 14, 23), the wolf and cheburashka every kept
 #: trial stood at most 3.0 x its target after 3 rounds, the losing ones at 12-47 x (CesiumMan's ~150 x)
-FAR = (3, 8.0)
+FAR = ((3, 8.0),)
 #: the first this many cut links (by the error they hold) are also tried with their neighbour cheapest to drop
 NEIGHBOUR_DROPS = 1
 #: rounds of splits at most (each keeps one)
