@@ -58,6 +58,8 @@ NEIGHBOUR_DROPS = 1
 #: times the lowest of them is given up (see :func:`run_lockstep`)
 BEHIND_ROUND = 2
 BEHIND = 1.5
+#: ... and so is every trial but the ``KEEP`` lowest then
+KEEP = 3
 #: threads the trials of a round are stepped on (numpy releases the GIL in most of a round's work:
 #: 1.2-1.45x on the 2-core machine with two; the answers do not depend on it)
 THREADS = 2
@@ -76,7 +78,7 @@ def principal_cut(points: np.ndarray) -> np.ndarray:
 
 
 def run_lockstep(runs, behind_round: int | None = None, behind: float | None = None,
-                 threads: int | None = None) -> None:
+                 keep: int | None = None, threads: int | None = None) -> None:
     """Run the :class:`skinning.Alternation` ``runs`` (one round's split trials) to their end in
     lockstep: all start, then every unfinished one steps a round at a time, on ``threads`` threads
     (default :data:`THREADS`). After ``behind_round`` rounds (default :data:`BEHIND_ROUND`) a run
@@ -88,6 +90,7 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
     threads."""
     behind_round = BEHIND_ROUND if behind_round is None else behind_round
     behind = BEHIND if behind is None else behind
+    keep = KEEP if keep is None else keep
     threads = THREADS if threads is None else threads
     if not runs:
         return
@@ -110,8 +113,9 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
             r += 1
             if r == behind_round:
                 low = min(a.e for a in runs)
+                ahead = sorted(a.e for a in runs)[keep - 1] if len(runs) >= keep else np.inf
                 for a in runs:
-                    if not a.finished and a.e > behind * low:
+                    if not a.finished and (a.e > behind * low or a.e > ahead):
                         a.stop()
     finally:
         if pool is not None:
