@@ -312,6 +312,8 @@ SAMPLE = True
 
 #: decompositions re-run on the argmax labels at most (see :func:`dominant_labels`)
 RELABEL_ROUNDS = 5
+#: rounds of each of those decompositions (it goes on from the last one's motions)
+RELABEL_TRIAL_ROUNDS = 4
 
 
 def dominant_faces(w, faces, labels, units=None, k=None, keep_units_only=False):
@@ -361,8 +363,8 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     k = R.shape[1]
     rows = vertex_sample(faces, labels, x0.shape[0]) if SAMPLE else None
 
-    def decompose(labels, R, t, **kw):
-        w, R, t, e = alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS, rows=rows, **kw)
+    def decompose(labels, R, t, rounds=TRIAL_ROUNDS, **kw):
+        w, R, t, e = alternate_scored(x0, fields, faces, labels, R, t, iterations=rounds, rows=rows, **kw)
         if rows is not None:
             w = full_skin(x0, fields, faces, labels, R, t, rows=rows, w_rows=w)[0]
         return w, R, t, e
@@ -380,7 +382,7 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     for _ in range(RELABEL_ROUNDS):
         if np.array_equal(new, labels):
             break
-        w1, R1, t1, e1 = decompose(new, R, t, w_init=w)
+        w1, R1, t1, e1 = decompose(new, R, t, rounds=RELABEL_TRIAL_ROUNDS, w_init=w)
         if not e1 < e:
             break
         labels, w, R, t, e = new, w1, R1, t1, e1
