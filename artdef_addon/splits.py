@@ -23,7 +23,10 @@ A split trial
 3. starts both halves from the least-squares motions of their faces (Kabsch/Arun, METHOD §6) and
    runs ``swaps.TRIAL_ROUNDS`` rounds of the decomposition.
 
-The best trial of a round is kept when it lowers E by at least ``MIN_GAIN``; the faces then go to
+A round's trials run in lockstep on two threads (:func:`run_lockstep`): a trial still far above its
+target after 1-3 rounds (``FAR``) or, after ``BEHIND_ROUND`` rounds, far behind the round's best
+(``BEHIND``, ``KEEP``) is given up. The best trial of a round is kept when it lowers E by at least
+``MIN_GAIN`` (in candidate order, a later trial only when it lowers the kept one's E by as much); the faces then go to
 the link dominating their skin while that lowers E (as :func:`merge.dominant_labels` does), and the
 next round starts from there. The link count never changes and E falls at every kept split.
 """
