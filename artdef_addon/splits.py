@@ -32,6 +32,7 @@ next round starts from there. The link count never changes and E falls at every 
 """
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -63,8 +64,9 @@ BEHIND_ROUND = 2
 BEHIND = 1.5
 #: ... and so is every trial but the ``KEEP`` lowest then
 KEEP = 3
-#: threads the trials of a round are stepped on (numpy releases the GIL in most of a round's work:
-#: 1.2-1.45x on the 2-core machine with two; the answers do not depend on it)
+#: threads the trials of a round are stepped on, at most one per core the process may use (numpy
+#: releases the GIL in most of a round's work: 1.2-1.45x on the 2-core machine with two; the answers
+#: do not depend on it)
 THREADS = 2
 #: rounds of splits at most (each keeps one)
 MAX_SPLITS = 4
@@ -94,7 +96,7 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
     behind_round = BEHIND_ROUND if behind_round is None else behind_round
     behind = BEHIND if behind is None else behind
     keep = KEEP if keep is None else keep
-    threads = THREADS if threads is None else threads
+    threads = min(THREADS, _cores()) if threads is None else threads
     if not runs:
         return
     pool = ThreadPoolExecutor(threads) if threads > 1 and len(runs) > 1 else None
@@ -123,6 +125,14 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
     finally:
         if pool is not None:
             pool.shutdown()
+
+
+def _cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
 
 
 def _relabel(x0, fields, faces, labels, w, R, t, e, units, rows=None):
