@@ -32,14 +32,13 @@ next round starts from there. The link count never changes and E falls at every 
 """
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from .joints import lsq_motions
 from .merge import dominant_faces
+from .metric import worker_count
 from .quality import vertex_spread
+from .skinning import stepping
 from .swaps import reassign_faces
 
 #: links tried for a cut per round: those whose vertices hold most of the decomposition error
@@ -86,28 +85,21 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
                  keep: int | None = None, threads: int | None = None) -> None:
     """Run the :class:`skinning.Alternation` ``runs`` (one round's split trials) to their end in
     lockstep: all start, then every unfinished one steps a round at a time, on ``threads`` threads
-    (default :data:`THREADS`). After ``behind_round`` rounds (default :data:`BEHIND_ROUND`) a run
-    whose error is above ``behind`` (default :data:`BEHIND`) times the lowest error of the runs
-    is stopped: the trial a round keeps is the one of lowest error, and on the rigged models
-    (RobotExpressive and CesiumMan fresh poses, the wolf, cheburashka, dembones_bone: 181 rounds of
-    trials) the kept one never stood above 1.3x the best after 2 rounds, while most losing ones
-    stood at 1.5-20x. Each run's arithmetic is its own, so the results do not depend on the
-    threads."""
+    (default :data:`THREADS`, at most one per core: :func:`metric.worker_count`). After
+    ``behind_round`` rounds (default :data:`BEHIND_ROUND`) a run whose error is above ``behind``
+    (default :data:`BEHIND`) times the lowest error of the runs, or above the ``keep``-th lowest
+    (default :data:`KEEP`), is stopped: on the rigged models (18 fits of RobotExpressive's and
+    CesiumMan's fresh poses, the wolf, cheburashka and dembones_bone: 41 rounds, 509 trials) the
+    trial a round kept never stood above 1.5x the lowest error nor below third after 2 rounds,
+    while most losing ones stood at 1.5-20x. Each run's arithmetic is its own, so the results do
+    not depend on the threads."""
     behind_round = BEHIND_ROUND if behind_round is None else behind_round
     behind = BEHIND if behind is None else behind
     keep = KEEP if keep is None else keep
-    threads = min(THREADS, _cores()) if threads is None else threads
+    threads = min(THREADS, worker_count()) if threads is None else threads
     if not runs:
         return
-    pool = ThreadPoolExecutor(threads) if threads > 1 and len(runs) > 1 else None
-
-    def each(fn, items):
-        if pool is None:
-            for a in items:
-                fn(a)
-        else:
-            list(pool.map(fn, items))
-    try:
+    with stepping(threads, len(runs)) as each:
         each(lambda a: a.start(), runs)
         r = 0
         while True:
@@ -122,17 +114,6 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
                 for a in runs:
                     if not a.finished and (a.e > behind * low or a.e > ahead):
                         a.stop()
-    finally:
-        if pool is not None:
-            pool.shutdown()
-
-
-def _cores() -> int:
-    """The CPU cores this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
 
 
 def _relabel(x0, fields, faces, labels, w, R, t, e, units, rows=None):
