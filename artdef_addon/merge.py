@@ -13,11 +13,9 @@ from an evenly spaced subsample (a documented approximation that keeps big links
 """
 from __future__ import annotations
 
-import hashlib
-
 import numpy as np
 
-from .metric import FieldFeatures, cross_sums, distance_block, distance_row_sums, row_medians
+from .metric import FieldFeatures, cross_sums, digest, distance_block, distance_row_sums, row_medians
 
 
 def field_weights(features: list[FieldFeatures]) -> np.ndarray:
@@ -35,7 +33,7 @@ class MergeCancelled(Exception):
 
 def member_key(m: np.ndarray) -> bytes:
     """A digest of a member array (order included): the key of its cached sums."""
-    return hashlib.blake2b(np.ascontiguousarray(m, dtype=np.int64).tobytes(), digest_size=16).digest()
+    return digest(np.asarray(m, dtype=np.int64))
 
 
 class SumCache:

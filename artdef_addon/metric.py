@@ -165,6 +165,18 @@ def row_medians(a: np.ndarray) -> np.ndarray:
     return (part[:, :h].max(axis=1) + part[:, h]) / 2
 
 
+def digest(*arrays) -> bytes:
+    """A 16-byte digest of arrays — their dtypes, shapes and contents, in order: the key of a value
+    cached from them (:mod:`merge`'s clusters' sums, :mod:`skinning`'s links' geodesic reach)."""
+    import hashlib
+    h = hashlib.blake2b(digest_size=16)
+    for x in arrays:
+        x = np.ascontiguousarray(x)
+        h.update(str((x.dtype, x.shape)).encode())
+        h.update(x.view(np.uint8).reshape(-1) if x.size else b"")
+    return h.digest()
+
+
 def worker_count() -> int:
     """Threads for the blocked distance work: the CPUs this process may use, 1 to 4."""
     import os

@@ -334,13 +334,14 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
     if radius is not None:
         from scipy.sparse.csgraph import dijkstra
         limit = radius * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-        mesh = _digest(vertices, faces, np.float64(limit))
+        from .metric import digest
+        mesh = digest(vertices, faces, np.float64(limit))
         E = None
         for l in range(L):
             src = np.flatnonzero(incidence[:, l])
             if src.size == 0 or limit <= 0:
                 continue
-            key = (mesh, _digest(src))
+            key = (mesh, digest(src))
             with _REACH_LOCK:
                 reach = _REACH.get(key)
             if reach is None:
@@ -364,16 +365,6 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
 REACH_CACHE = 512
 _REACH: dict = {}
 _REACH_LOCK = threading.Lock()
-
-
-def _digest(*arrays) -> bytes:
-    import hashlib
-    h = hashlib.blake2b(digest_size=16)
-    for x in arrays:
-        x = np.ascontiguousarray(x)
-        h.update(str((x.dtype, x.shape)).encode())
-        h.update(x.view(np.uint8).reshape(-1) if x.size else b"")
-    return h.digest()
 
 
 def link_incidence(n_vertices: int, faces: np.ndarray, labels: np.ndarray, L: int):
