@@ -144,7 +144,7 @@ def _active_set(Q, q, valid, max_rounds, w0=None):
 
 def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
                           max_support: int | None = None, w0: np.ndarray | None = None,
-                          free: list | None = None) -> np.ndarray:
+                          convex: bool = False):
     """Minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries,
     with at most ``max_support`` non-zero weights (default: no limit).
 
@@ -155,8 +155,9 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     their own — or the ``max_support`` candidates that fit best alone, whichever is better (so
     never worse than choosing the links by their single fit). Rows with a single valid candidate
     get weight 1 on it without a solve. ``w0`` (N, m): feasible weights to start the active set
-    from (the result does not depend on it where the optimum is unique). ``free``: a list to which
-    the convex optimum (N, m) (no support limit) is appended — the next round's best start.
+    from (the result does not depend on it where the optimum is unique). With ``convex`` the
+    return is ``(w, w_convex)``: also the convex optimum (N, m) (no support limit) — the next
+    round's best start.
     """
     N, m = q.shape
     out = np.zeros((N, m))
@@ -165,16 +166,13 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
     out[one] = valid[one]
     multi = np.flatnonzero(nvalid > 1)
     if multi.size == 0:
-        if free is not None:
-            free.append(out.copy())
-        return out
+        return (out, out.copy()) if convex else out
     top = m if max_support is None else max(1, min(m, int(max_support)))
     Qm, qm, vm = Q[multi], q[multi], valid[multi]
     w, done = _active_set(Qm, qm, vm, max_rounds=3 * m, w0=None if w0 is None else w0[multi])
-    if free is not None:
+    if convex:
         wf = out.copy()
         wf[multi] = w
-        free.append(wf)
     over = np.flatnonzero(~done | (np.count_nonzero(w > 0, axis=1) > top))
     if over.size:
         Qo, qo, vo, wo = Qm[over], qm[over], vm[over], w[over]
@@ -203,7 +201,7 @@ def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
         w[over] = best
     w = np.maximum(w, 0.0)
     out[multi] = w / w.sum(axis=1, keepdims=True)
-    return out
+    return (out, wf) if convex else out
 
 
 def _homogeneous(vertices: np.ndarray, R: np.ndarray, t: np.ndarray):
@@ -444,7 +442,7 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     q = np.take_along_axis(q_all, cols, axis=1)
     start = w_init if w_free is None else w_free
     w0 = None if start is None else np.take_along_axis(start, cols, axis=1) * valid
-    free = None if free_out is None else []
+    free = []                       # the blocks' convex optima (free_out)
     out = np.zeros((N, L))
     wc = np.zeros((N, m))
     block = N if details else SOLVE_BLOCK
@@ -454,7 +452,10 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
         e = min(N, s + block)
         Qb = Q[s:e] if details else _pair_quadratic(xh[s:e], G, cols[s:e])
         wb = simplex_least_squares(Qb, q[s:e], valid[s:e], max_support=max_influences,
-                                   w0=None if w0 is None else w0[s:e], free=free)
+                                   w0=None if w0 is None else w0[s:e], convex=free_out is not None)
+        if free_out is not None:
+            wb, wf = wb
+            free.append(wf)
         wb[wb < 1e-6] = 0.0
         wb /= wb.sum(axis=1, keepdims=True)
         wc[s:e] = wb

@@ -80,22 +80,20 @@ def test_simplex_least_squares_with_an_influence_limit(rank):
 
 
 def test_simplex_least_squares_hands_back_its_convex_optimum_as_the_next_start():
-    """``free`` receives the convex optimum (the weights without the influence limit); started from
+    """With ``convex`` it also returns the convex optimum (the weights without the influence limit); started from
     it, the limited solve gives the same weights as from a cold start (what the alternation's warm
     start relies on), and a batch of single-candidate rows hands back their one weight."""
     N, m = 80, 8
     _, _, Q, q, valid = _random_normal_equations(5, N, m, 12, 0.25)
-    free = []
-    w = skinning.simplex_least_squares(Q, q, valid, max_support=4, free=free)
-    assert np.allclose(free[0], skinning.simplex_least_squares(Q, q, valid), atol=1e-12)
-    assert ((free[0] > 0).sum(1) > 4).any()              # the limit binds on some rows
-    warm = skinning.simplex_least_squares(Q, q, valid, max_support=4, w0=free[0])
+    w, free = skinning.simplex_least_squares(Q, q, valid, max_support=4, convex=True)
+    assert np.allclose(free, skinning.simplex_least_squares(Q, q, valid), atol=1e-12)
+    assert ((free > 0).sum(1) > 4).any()              # the limit binds on some rows
+    warm = skinning.simplex_least_squares(Q, q, valid, max_support=4, w0=free)
     assert np.allclose(warm, w, atol=1e-10)
     one = np.zeros((3, m), dtype=bool)
     one[:, 2] = True
-    free = []
-    skinning.simplex_least_squares(Q[:3], q[:3], one, max_support=4, free=free)
-    assert np.array_equal(free[0], one.astype(float))
+    _, free = skinning.simplex_least_squares(Q[:3], q[:3], one, max_support=4, convex=True)
+    assert np.array_equal(free, one.astype(float))
 
 
 def test_refined_skin_reproduces_a_rig_from_its_true_motions():
