@@ -53,6 +53,7 @@ rigged and CraGL sets): ``benchmarks/results/core_constants.md``; the method: do
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 
@@ -62,7 +63,7 @@ from . import cost as _cost
 from . import skinning
 from .blas import single_threaded
 from .merge import dominant_faces
-from .model import skin
+from .model import skin, skin_links
 from .quality import frame_spread
 
 
@@ -175,11 +176,39 @@ def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
         if ground is not None:  # the fixed world is one more "link" with the identity motion
             R = np.concatenate([R, np.tile(np.eye(3), (len(used), 1, 1, 1))], axis=1)
             t = np.concatenate([t, np.zeros((len(used), 1, 3))], axis=1)
-        err = sum(np.sum((skin(w, R[i], t[i], scan.vertices) - X[i]) ** 2) for i in range(len(used)))
+        moved = skin_links(w)            # what each link moves, found once for every field
+        err = sum(np.sum((skin(w, R[i], t[i], scan.vertices, moved) - X[i]) ** 2) for i in range(len(used)))
         out.append(100.0 * np.sqrt(err) / den if den > 0 else 0.0)
     if isinstance(progress, SearchProgress):
         progress.step(_cost.CURVE_FITS_PER_COUNT)
     return np.array(out)
+
+
+@contextlib.contextmanager
+def remembered_segments(seg):
+    """Within the block, ``seg.segment(k, fields)`` computes each (k, fields) once: the tree curve
+    segments every count up to Max Links, and the whole fits of the upward pass and the drop ask for
+    the same counts again (the merge, the links' medoids and the seam refinement, about a tenth of
+    a fit each). The segmentation of a count does not depend on what was segmented before, so the
+    answers are the same; each caller gets its own copies."""
+    if "segment" in vars(seg):            # already remembered by an outer block
+        yield seg
+        return
+    plain = seg.segment
+    memo = {}
+
+    def segment(k, fields=None):
+        key = (int(k), None if fields is None else tuple(int(p) for p in fields))
+        if key not in memo:
+            memo[key] = plain(k, fields)
+        lab, med, used = memo[key]
+        return lab.copy(), med.copy(), list(used)
+
+    seg.segment = segment
+    try:
+        yield seg
+    finally:
+        del seg.segment
 
 
 #: log-log slope below which the whole fits' error counts as levelled off (see module docstring)
@@ -209,6 +238,12 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slo
         whole_fits = scan.kind != "greens" and scan.support_vertices is None
     search = progress if isinstance(progress, SearchProgress) else SearchProgress(
         progress, _cost.CURVE_FITS_PER_COUNT * max_links + (1.0 + window * _cost.GROW_FITS if whole_fits else 0.0))
+    with remembered_segments(seg):
+        return _choose_links(seg, max_links, tau, search, slope, window, whole_fits)
+
+
+def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> LinkChoice:
+    """:func:`choose_links` after its arguments are settled."""
     t0 = time.perf_counter()
     with single_threaded():      # thousands of small distance products (see :mod:`blas`)
         e = articulation_error_curve(seg, max_links, progress=search)
