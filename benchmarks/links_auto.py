@@ -11,8 +11,14 @@ Side by side in one process, each with a new Segmenter: the fixed-count fit at t
 seconds split into the tree curve, the upward pass and the drop of links that are not bones;
 "stops" says how each upward decision was made (``linkcount._grown_upward``): "grown" when the
 links grown on a whole fit levelled off (no whole fit of the counts ahead), "whole" when whole
-fits did. With ``--verify`` every "grown" stop is checked against the whole fits of the counts
-ahead (the whole-fit rule's own decision).
+fits did, "grown continue" when the grown links fell far below the bar (the count passed without a
+whole fit). With ``--verify`` every "grown" stop is checked against the whole fits of the counts
+ahead (the whole-fit rule's own decision). "whole fits" counts the whole fits the search made (the
+upward pass and the drop), "grown" the links grown.
+
+Issue 16's estimate: "est. (s)" is what ``fit --links auto`` prints before the search
+(``api.plan(..., auto=True)``), "peak MB" the rise of the process's peak RSS during the search
+(the peak reset before it through ``/proc/self/clear_refs``), "est. MB" the estimate's memory.
 
     .venv/bin/python benchmarks/links_auto.py --data ../shared/data [--only Fox,Robot]
 """
@@ -26,7 +32,27 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from artdef_addon import fit as F, linkcount, samples, scan as S  # noqa: E402
+from artdef_addon import api, fit as F, linkcount, samples, scan as S  # noqa: E402
+
+
+def _status(key: str) -> float:
+    """A /proc/self/status figure in bytes (VmRSS, VmHWM), 0 where there is none."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def _reset_peak() -> None:
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
 
 SETS = ["gltf_RiggedSimple", "cragl_cylinder_gt", "gltf_RiggedFigure", "gltf_Fox", "cragl_cube_gt",
         "threejs_RobotExpressive", "gltf_CesiumMan", "cragl_cow_gt", "cragl_wolf_gt", "cragl_cheburashka_gt"]
@@ -40,8 +66,9 @@ def main(argv=None):
     a = ap.parse_args(argv)
     only = [s for s in a.only.split(",") if s]
     print("| set | poses | true links | tree rule | whole fits up | links auto | off by | fixed fit (s) | links auto (s) "
-          "| × fixed | curve / up / drop (s) | stops |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|")
+          "| × fixed | curve / up / drop (s) | whole fits / grown | est. (s) | × est. | peak MB | est. MB | × est. "
+          "| stops |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---|")
     for name in SETS:
         if only and not any(o in name for o in only):
             continue
@@ -60,11 +87,16 @@ def main(argv=None):
             t0 = time.perf_counter()
             F.fit(scan, L, segmenter=F.Segmenter(scan))
             fixed = time.perf_counter() - t0
+            mx = max(30, int(1.5 * L))
+            est, _ = api.plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind,
+                              auto=True, max_links=mx)
+            _reset_peak()
+            rss = _status("VmRSS")
             t0 = time.perf_counter()
             seg = F.Segmenter(scan)
-            mx = max(30, int(1.5 * L))
             c = linkcount.choose_links(seg, max_links=mx)
             dt = time.perf_counter() - t0
+            peak = max(_status("VmHWM") - rss, 0.0)
             stops = ", ".join(f"{k} {how}" for k, how in c.decisions if how != "continue")
             if a.verify:
                 for k, how in c.decisions:
@@ -74,8 +106,12 @@ def main(argv=None):
                         low = min(float(F.fit(scan, i, segmenter=seg).articulation_error_percent) for i in range(k + 1, j + 1))
                         stops += " (whole fits agree)" if low >= bar else f" (WHOLE FITS DISAGREE: {low:.4g} < {bar:.4g})"
             parts = " / ".join(f"{c.timings.get(p, 0.0):.1f}" for p in ("curve", "upward", "drop"))
+            work = f"{c.work.get('whole_fits', 0)} / {c.work.get('grown_links', 0)}"
+            mb = 2.0 ** 20
             print(f"| {name} | {kind} | {L} | {c.tree_links} | {c.upward_links} | {c.links} | {100 * (c.links - L) / L:+.0f} % "
-                  f"| {fixed:.1f} | {dt:.1f} | {dt / fixed:.1f} | {parts} | {stops} |", flush=True)
+                  f"| {fixed:.1f} | {dt:.1f} | {dt / fixed:.2f} | {parts} | {work} | {est.seconds:.1f} "
+                  f"| {dt / est.seconds:.2f} | {peak / mb:.0f} | {est.memory_bytes / mb:.0f} "
+                  f"| {peak / est.memory_bytes:.2f} | {stops} |", flush=True)
             print(f"<!-- {c.reason} -->", flush=True)
 
 
