@@ -217,6 +217,15 @@ WHOLE_FIT_SLOPE = 2.0
 #: the upward search continues on grown links (:func:`_grown_upward`) when their errors fall below
 #: this many times the bar (whole fits: 0.12-0.17 x at CesiumMan's continues, grown links 0.23-0.39 x)
 GROWN_CONTINUE = 0.5
+#: ... but not where the count's error is below this (percent): at the floor of a noiseless scan the
+#: grown errors fall by ratios of rounding (the 11-link branching sample: 2e-13 % at 11, 0 at 12)
+GROWN_FLOOR = 1e-3
+#: ... and only from counts at most this many grown links above the chain's fit: further up the
+#: chain's own error stands in for the count's, and the bar with it. A chain started far below the
+#: truth kept falling past it at depth 5 (the Fox's fresh poses from 17 links: passed 22, the true
+#: count, and stopped at 24), and at depth 1 on the 11-link branching sample (its grown 11th link
+#: short of the exact segment the whole fit finds, the next ones at 0: passed 11)
+CONTINUE_DEPTH = 0
 #: the upward search stops on grown links (:func:`_grown_upward`) only when their errors stay above
 #: this many times the bar. A whole fit re-segments, swaps and (since main's split stage) splits
 #: links, so it can end far below the grown error of its count: 0.23-1.2 x on the shared sets
@@ -283,7 +292,7 @@ def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> Lin
         t0 = time.perf_counter()
         if k < max_links:
             k1, ef, eg, decisions = _grown_upward(seg, k, max_links, window, search, fits, work)
-            why += f". Whole fits from {k} links: error {ef[k]:.3g}%"
+            why += f". Whole fits from {k} links" + (f": error {ef[k]:.3g}%" if k in ef else "")
             if k1 > k:
                 why += f", {ef[k1]:.3g}% with {k1}"
             why += f"; beyond it the error falls slower than k^-{WHOLE_FIT_SLOPE:g} over {window} more links"
@@ -472,18 +481,33 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     known: dict[int, float] = {}        # each count passed: its whole fit's error, else the chain's
     grown: dict[int, float] = {}        # the chain's errors, from its base
     chain: dict[int, object] = {}       # count -> (labels, w, R, t) of the chain, or None (nothing to grow)
+    partial: dict[int, tuple] = {}      # count -> (FitState, seconds) of a fit run up to its split stage
     decisions = []
 
     def whole(j):
         if j not in errors:
             if j not in fits:
-                search.plan(1.0)
-                fits[j] = fit(scan, j, segmenter=seg, progress=search.fit_callback())
-                search.step(1.0)
+                share = 1.0 - PARTIAL_SHARE if j in partial else 1.0
+                search.plan(share)
+                fits[j] = fit(scan, j, segmenter=seg, progress=search.fit_callback(share), resume=partial.pop(j, None))
+                search.step(share)
             e = float(fits[j].articulation_error_percent)
             errors[j] = e if np.isfinite(e) else 0.0   # undefined (one field): nothing to explain
         known[j] = errors[j]
         return errors[j]
+
+    def start_fit(j):
+        """The whole fit at j run up to its split stage (:func:`partial_fit`): the chain's base, and
+        the error of that skin as the count's until the fit is finished."""
+        search.plan(PARTIAL_SHARE)
+        st, secs, e = partial_fit(seg, j, search.fit_callback(PARTIAL_SHARE))
+        search.step(PARTIAL_SHARE)
+        partial[j] = (st, secs)
+        known[j] = e
+        chain.clear()
+        grown.clear()
+        chain[j] = (st.labels, st.weights, st.Rs, st.ts)
+        grown[j] = e
 
     def rebase(j):
         """The chain from the whole fit at j."""
@@ -506,8 +530,7 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
             top += 1
             search.step(_cost.GROW_FITS)
 
-    whole(start)
-    rebase(start)
+    start_fit(start)
     while k < max_links:
         j = min(max_links, k + window)
         best_k = min(known[i] for i in range(start, k + 1))
@@ -515,16 +538,21 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
             decisions.append((k, "explained"))
             break
         bar = best_k * (k / j) ** WHOLE_FIT_SLOPE   # log(best/e)/log(j/k) > s  <=>  e < bar
+        if k - min(chain) > CONTINUE_DEPTH and k not in errors and k not in partial:
+            start_fit(k)                 # the chain is too long to pass more counts on: start again at k
+            continue
         grow_to(j)
         low = min(grown[i] for i in range(k + 1, j + 1))
-        if low < GROWN_CONTINUE * bar and best_k > EXPLAINED:
+        if low < GROWN_CONTINUE * bar and best_k > GROWN_FLOOR and k - min(chain) <= CONTINUE_DEPTH:
             decisions.append((k, "grown continue"))
             k += 1
             known.setdefault(k, grown[k])
             continue
         if k not in errors:              # a stop or a close call: k's own whole fit first
+            based = k in partial         # the chain grew from this fit's skin before its split stage
             whole(k)
-            rebase(k)
+            if not (based and fits[k].n_links == known_links(chain[k]) and errors[k] >= grown[k] * (1 - 1e-6)):
+                rebase(k)                # the split stage changed the fit: grow the chain again
             continue
         if low >= GROWN_MARGIN * bar:
             decisions.append((k, "grown"))
@@ -538,6 +566,35 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
         rebase(k)                        # k + 1 was fitted first
     whole(k)
     return k, errors, grown, decisions
+
+
+#: the share of a whole fit's time up to its split stage (CesiumMan: 0.6-0.7), for the progress
+PARTIAL_SHARE = 0.65
+
+
+def known_links(state) -> int:
+    """The link count of a chain state (labels, w, R, t)."""
+    return -1 if state is None else int(state[2].shape[1])
+
+
+def partial_fit(seg, k: int, progress=None):
+    """The whole fit (:func:`fit.fit`, its defaults) at ``k`` links run up to, not including, its
+    split stage: ``(state, seconds per stage, error %)``, the error the Karni–Gotsman error of
+    the refined skin (weights with the skin's own motions), which the split stage only lowers
+    (the whole fit's error is that of its final skin: ``fit.stage_residuals``).
+    ``fit.fit(..., resume=(state, seconds))`` finishes the same fit."""
+    from .fit import STAGES, FitState, run_stages
+    scan = seg.scan
+    x0, fields = scan.vertices, scan.fields()
+    n = [name for name, _ in STAGES].index("split")
+    st = FitState(scan=scan, seg=seg, links=k, motion="robust", skin="refined", field_idx=list(range(scan.n_fields)))
+    with single_threaded():
+        secs = run_stages(st, progress, STAGES[:n])
+    moved = skin_links(st.weights)
+    err = sum(np.sum((skin(st.weights, st.Rs[p], st.ts[p], x0, moved) - x0 - fields[p]) ** 2)
+              for p in range(len(fields)))
+    spread = frame_spread(x0, fields)
+    return st, secs, (100.0 * np.sqrt(err / spread) if spread > 0 else 0.0)
 
 
 def _whole_fits_upward(seg, k: int, max_links: int, window: int, progress=None, fits=None):

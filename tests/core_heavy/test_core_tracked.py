@@ -152,23 +152,31 @@ def test_whole_fits_climb_to_the_true_link_count():
 
 def test_grown_links_spare_whole_fits_and_climb_to_the_true_link_count():
     """The upward search with grown links (linkcount._grown_upward) makes the whole fits' choice
-    from 8 links (11, as test_whole_fits_climb_to_the_true_link_count) with fewer whole fits: the
-    whole-fit rule fits 8..15, here only counts that may be chosen and the continue decisions'
-    witnesses are fitted. A link grown on the 10-link fit (one arm segment short) finds that
-    segment: the error drops from over 1 % to the floor's order."""
+    from 8 links (11, as test_whole_fits_climb_to_the_true_link_count) with one whole fit where
+    the whole-fit rule fits 8..15: 8, 9 and 10 are passed on links grown on each count's fit up to
+    its split stage (linkcount.partial_fit), and only 11, where the error reaches the floor, is
+    fitted whole (finishing its partial fit). A link grown on the 10-link fit (one arm segment
+    short) finds that segment: the error drops from over 1 % to the floor's order."""
     scan, truth = samples.branching()
     seg = F.Segmenter(scan)
     fits = {}
-    k, whole, grown, decisions = linkcount._grown_upward(seg, 8, 16, 4, linkcount.SearchProgress(None, 1.0), fits)
-    assert k == 11 and decisions[-1] == (11, "explained"), decisions
-    assert len(fits) <= 6 and set(whole) == set(fits) and whole[10] > 1.0 > 0.01 > whole[11]
-    r = fits[10]
+    work = {}
+    k, whole, grown, decisions = linkcount._grown_upward(seg, 8, 16, 4, linkcount.SearchProgress(None, 1.0), fits,
+                                                         work)
+    assert k == 11 and decisions == [(8, "grown continue"), (9, "grown continue"), (10, "grown continue"),
+                                     (11, "explained")], decisions
+    assert set(whole) == set(fits) == {11} and whole[11] < 0.01 and work["grown_links"] >= 3
+    # the finished partial fit is the whole fit fit.fit makes
+    again = F.fit(scan, 11, segmenter=seg)
+    assert np.array_equal(again.face_labels, fits[11].face_labels) and np.allclose(again.weights, fits[11].weights)
+    r = F.fit(scan, 10, segmenter=seg)
+    assert r.articulation_error_percent > 1.0
     X = scan.vertices[None] + scan.fields()
     spread = float(np.sum((X - X.mean(axis=1, keepdims=True)) ** 2))
     labels, w, R, t, err = linkcount.grow_link(scan.vertices, scan.fields(), scan.faces, r.face_labels,
                                                r.weights[:, :10], r.rotations, r.translations,
                                                seg.valid[seg.unit_tri], spread)
-    assert w.shape == (scan.n_vertices, 11) and R.shape[1] == 11 and err < 0.1 < 1.0 < whole[10]
+    assert w.shape == (scan.n_vertices, 11) and R.shape[1] == 11 and err < 0.1 < 1.0 < r.articulation_error_percent
     # the new link is one true link (the segment the 10-link fit had merged into a neighbour)
     true_of_new = truth["face_labels"][labels == 10]
     assert np.bincount(true_of_new).max() >= 0.9 * true_of_new.size
