@@ -145,44 +145,71 @@ _FIT_STAGE_AT = {"segment": 0.0, "motions": 0.1, "relabel": 0.1, "skin": 0.6, "s
                  "bones": 0.96, "pose": 0.97, "residuals": 0.97, "done": 1.0}
 
 
-def articulation_error_curve(seg, max_links: int, progress=None) -> np.ndarray:
-    """e(k) for k = 1..max_links (see module docstring), percent. ``progress``: a
-    ``progress(stage, fraction)`` callback (the stage "links", fraction (k − 1)/max_links) or a
-    :class:`SearchProgress` (one step per count)."""
-    scan = seg.scan
-    fields_all = scan.fields()
-    ground = None
-    if scan.support_vertices is not None:
-        ground = np.zeros(scan.n_vertices, dtype=bool)
-        ground[scan.support_vertices] = True
-    out = []
-    for k in range(1, max_links + 1):
+def articulation_error_curve(seg, max_links: int, progress=None, counts=None) -> np.ndarray:
+    """e(k) for k = 1..max_links (see module docstring), percent; with ``counts`` only at those
+    counts (NaN elsewhere). ``progress``: a ``progress(stage, fraction)`` callback (the stage
+    "links", fraction (k − 1)/max_links) or a :class:`SearchProgress` (one step per count)."""
+    out = np.full(max_links, np.nan)
+    for k in (range(1, max_links + 1) if counts is None else counts):
         if isinstance(progress, SearchProgress):
             progress.step(_cost.CURVE_FITS_PER_COUNT if k > 1 else 0.0)
         elif progress is not None and progress("links", (k - 1) / max_links):
             from .fit import FitCancelled
             raise FitCancelled("cancelled while choosing the link count")
-        lab, med, used = seg.segment(k)
-        labels = seg.full_labels(lab)
-        R = np.stack([seg.features[p].R[med[:, i]] for i, p in enumerate(used)])
-        t = np.stack([seg.features[p].t[med[:, i]] for i, p in enumerate(used)])
-        fields = fields_all[used]
-        X = scan.vertices[None] + fields
-        den = np.linalg.norm(X - X.mean(axis=0))
-        # candidates: each vertex's 4 best single links. The curve and its rule were set on these;
-        # the wider pool of the fit's skin lowers e(k) by a few 0.01 % at large k only, but moves
-        # the slope rule's choice on flat tails (cylinder 4 → 7 links, RiggedFigure 20 → 23)
-        w = skinning.refined_weights(scan.vertices, fields, scan.faces, labels, R, t, ground=ground, rings=2,
-                                     pool=4)
-        if ground is not None:  # the fixed world is one more "link" with the identity motion
-            R = np.concatenate([R, np.tile(np.eye(3), (len(used), 1, 1, 1))], axis=1)
-            t = np.concatenate([t, np.zeros((len(used), 1, 3))], axis=1)
-        moved = skin_links(w)            # what each link moves, found once for every field
-        err = sum(np.sum((skin(w, R[i], t[i], scan.vertices, moved) - X[i]) ** 2) for i in range(len(used)))
-        out.append(100.0 * np.sqrt(err) / den if den > 0 else 0.0)
+        out[k - 1] = curve_error(seg, k)
     if isinstance(progress, SearchProgress):
         progress.step(_cost.CURVE_FITS_PER_COUNT)
-    return np.array(out)
+    return out
+
+
+def curve_error(seg, k: int) -> float:
+    """e(k) of the tree curve (see module docstring), percent."""
+    scan = seg.scan
+    ground = None
+    if scan.support_vertices is not None:
+        ground = np.zeros(scan.n_vertices, dtype=bool)
+        ground[scan.support_vertices] = True
+    lab, med, used = seg.segment(k)
+    labels = seg.full_labels(lab)
+    R = np.stack([seg.features[p].R[med[:, i]] for i, p in enumerate(used)])
+    t = np.stack([seg.features[p].t[med[:, i]] for i, p in enumerate(used)])
+    fields = scan.fields()[used]
+    X = scan.vertices[None] + fields
+    den = np.linalg.norm(X - X.mean(axis=0))
+    # candidates: each vertex's 4 best single links. The curve and its rule were set on these;
+    # the wider pool of the fit's skin lowers e(k) by a few 0.01 % at large k only, but moves
+    # the slope rule's choice on flat tails (cylinder 4 → 7 links, RiggedFigure 20 → 23)
+    w = skinning.refined_weights(scan.vertices, fields, scan.faces, labels, R, t, ground=ground, rings=2, pool=4)
+    if ground is not None:  # the fixed world is one more "link" with the identity motion
+        R = np.concatenate([R, np.tile(np.eye(3), (len(used), 1, 1, 1))], axis=1)
+        t = np.concatenate([t, np.zeros((len(used), 1, 3))], axis=1)
+    moved = skin_links(w)            # what each link moves, found once for every field
+    err = sum(np.sum((skin(w, R[i], t[i], scan.vertices, moved) - X[i]) ** 2) for i in range(len(used)))
+    return 100.0 * np.sqrt(err) / den if den > 0 else 0.0
+
+
+def descending_curve(seg, max_links: int, tau: float = 0.15, progress=None) -> np.ndarray:
+    """The tree curve where the rule reads it: e(1), then e(k) from ``max_links`` down until two
+    counts in a row are above the tau bar e_floor·(e(1)/e_floor)^τ of the counts so far (NaN below
+    them). The counts left out are under that pair, where a rig's curve is still in its big drop:
+    the rule's first count within tau (k₀) and everything above it are read as from the whole curve
+    unless a count under the pair were within tau again (the same tree picks on the 23 curves of
+    the shared sets, 15-20 of CesiumMan's 30 counts computed: ``benchmarks/results/links_auto.md``).
+    The low counts are the dear ones (a few large clusters' medoids and seams)."""
+    out = np.full(max_links, np.nan)
+    search = progress if isinstance(progress, SearchProgress) else SearchProgress(None, 1.0)
+    search.step(0.0)                 # the search has begun: 0
+    out[0] = curve_error(seg, 1)
+    for k in range(max_links, 1, -1):
+        search.step(_cost.CURVE_FITS_PER_COUNT)
+        out[k - 1] = curve_error(seg, k)
+        floor = max(float(np.nanmin(out)), 1e-3)
+        top = max(float(out[0]), floor)
+        bar = floor * (top / floor) ** tau
+        if k < max_links and out[k - 1] > bar and out[k] > bar:
+            break
+    search.step(_cost.CURVE_FITS_PER_COUNT)
+    return out
 
 
 @contextlib.contextmanager
@@ -259,17 +286,18 @@ def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> Lin
     """:func:`choose_links` after its arguments are settled."""
     t0 = time.perf_counter()
     with single_threaded():      # thousands of small distance products (see :mod:`blas`)
-        e = articulation_error_curve(seg, max_links, progress=search)
+        e = descending_curve(seg, max_links, tau, progress=search)
     timings = {"curve": time.perf_counter() - t0}
-    floor = max(float(e.min()), 1e-3)
+    floor = max(float(np.nanmin(e)), 1e-3)
     top = max(float(e[0]), floor)
     if top <= floor * 1.0001:
         k = 1
         why = f"one rigid motion explains every field (error {e[0]:.3g}%)"
     else:
-        frac = np.log(np.maximum(e, floor) / floor) / np.log(top / floor)
+        frac = np.log(np.maximum(e, floor) / floor) / np.log(top / floor)     # NaN where not computed
         k0 = int(np.flatnonzero(frac <= tau)[0]) + 1
-        env = np.minimum.accumulate(np.maximum(e, floor))  # best error with at most k links
+        # best error with at most k links (of the counts computed)
+        env = np.minimum.accumulate(np.where(np.isnan(e), np.inf, np.maximum(e, floor)))
         k = k0
         while k < max_links:
             j = min(max_links, k + window)
@@ -277,7 +305,7 @@ def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> Lin
                 break
             k += 1
         why = (f"articulation error {e[0]:.2f}% with 1 link, {e[k0 - 1]:.2f}% with {k0} (within tau={tau:g} of the "
-               f"floor {e.min():.2f}% by {max_links} on a log scale)")
+               f"floor {np.nanmin(e):.2f}% by {max_links} on a log scale)")
         if k > k0:
             why += (f", still falling faster than k^-{slope:g} over the next {window} link counts up to {k} "
                     f"({e[k - 1]:.2f}%)")
@@ -304,6 +332,9 @@ def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> Lin
             why += (". Links that are not bones (moving as a blend of their neighbours, or lending their motion "
                     "to blends far beyond their own triangles): " + ", ".join(f"{n} of {j}" for j, n in steps)
                     + f", so {k}")
+    if np.isnan(e[k - 1]):           # chosen below the counts the rule read (the drop of non-bones)
+        with single_threaded():
+            e[k - 1] = curve_error(seg, k)
     search.report(final=True)
     work["whole_fits"] = len(fits)
     return LinkChoice(k, e, tau, f"links auto: chose {k}. {why}", tree_links, k1, fits.get(k), timings,
