@@ -80,7 +80,9 @@ class LinkChoice:
     whole_errors: dict = dataclasses.field(default_factory=dict)   # {count: whole-fit error %} upward
     grown_errors: dict = dataclasses.field(default_factory=dict)   # {count: grown error %} (grow_link)
     decisions: list = dataclasses.field(default_factory=list)      # [(count, how the rule decided)]
-    work: dict = dataclasses.field(default_factory=dict)   # {"whole_fits": n, "grown_links": n} the search made
+    # what the search did: {"whole_fits": n (finished fits), "partial_fits": n (fits run up to their split
+    # stage, finished or not), "grown_links": n, "low_over_bar": [(count, grown links' lowest error / bar)]}
+    work: dict = dataclasses.field(default_factory=dict)
 
     def reusable(self, mode: str = "global", motion: str = "robust", skin: str | None = "auto"):
         """The chooser's own fit at the chosen count if it is what ``fit.fit(scan, links, mode,
@@ -244,9 +246,13 @@ WHOLE_FIT_SLOPE = 2.0
 #: the upward search continues on grown links (:func:`_grown_upward`) when their errors fall below
 #: this many times the bar (whole fits: 0.12-0.17 x at CesiumMan's continues, grown links 0.23-0.39 x)
 GROWN_CONTINUE = 0.5
-#: ... but not where the count's error is below this (percent): at the floor of a noiseless scan the
-#: grown errors fall by ratios of rounding (the 11-link branching sample: 2e-13 % at 11, 0 at 12)
-GROWN_FLOOR = 1e-3
+#: ... but not where the count's error (percent) is below this, where a bone is no longer clearly
+#: missing: near the floor grown links and whole fits part ways (RiggedFigure's own poses at 20 links,
+#: 0.021 %: the links grown on the whole fit 0.23 x the bar, the whole fits of 21-24 3.1-4.3 x, as
+#: whole fits get worse with more links on its 130 vertices; a noiseless scan's grown errors fall
+#: by ratios of rounding, the 11-link branching sample 2e-13 % at 11, 0 at 12). The counts passed
+#: on grown links on the shared sets stood at 0.24-0.74 % (CesiumMan, the Fox)
+GROWN_FLOOR = 0.1
 #: ... and only from counts at most this many grown links above the chain's fit: further up the
 #: chain's own error stands in for the count's, and the bar with it. A chain started far below the
 #: truth kept falling past it at depth 5 (the Fox's fresh poses from 17 links: passed 22, the true
@@ -313,7 +319,7 @@ def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> Lin
             why += f"; beyond it the error falls slower than k^-{slope:g}"
     tree_links = k
     fits = {}
-    work = {"whole_fits": 0, "grown_links": 0}
+    work = {"whole_fits": 0, "partial_fits": 0, "grown_links": 0}
     k1 = k
     ef, eg, decisions = {}, {}, []
     if whole_fits:
@@ -531,6 +537,7 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
         """The whole fit at j run up to its split stage (:func:`partial_fit`): the chain's base, and
         the error of that skin as the count's until the fit is finished."""
         search.plan(PARTIAL_SHARE)
+        work["partial_fits"] = work.get("partial_fits", 0) + 1
         st, secs, e = partial_fit(seg, j, search.fit_callback(PARTIAL_SHARE))
         search.step(PARTIAL_SHARE)
         partial[j] = (st, secs)
@@ -574,6 +581,7 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
             continue
         grow_to(j)
         low = min(grown[i] for i in range(k + 1, j + 1))
+        work.setdefault("low_over_bar", []).append((k, low / bar if bar > 0 else float("inf")))
         if low < GROWN_CONTINUE * bar and best_k > GROWN_FLOOR and k - min(chain) <= CONTINUE_DEPTH:
             decisions.append((k, "grown continue"))
             k += 1
