@@ -19,6 +19,11 @@ segment) makes it fall faster. So from k₀ on, k grows while the error over the
 counts falls faster than k^(−s), s = 0.7 (log-log slope of the running minimum of e,
 log(ê(k)/ê(k+h)) / log((k+h)/k) > s); the first k where it does not is the tree's choice.
 
+The curve is read where the rule reads it (:func:`descending_curve`): e(1), then from Max Links
+down until two counts in a row are above the τ bar; the counts under them (the big drop, and the
+dearest segmentations) are left out, which gave the same picks as the whole curve on every shared
+set.
+
 Whole fits, upward (tracked scans without a fixed ground). The re-cut tree is cheap but a poor
 segmentation for short, blended bones, so its curve flattens before they all have a link: it
 undershoots on rigs with fingers and tail segments. The error of the whole fit (link swaps and
@@ -26,12 +31,13 @@ refined skin, :func:`fit.fit`) instead drops to the data's floor once every bone
 from the tree's choice k grows by the same slope rule on the whole fits' errors with
 s = ``WHOLE_FIT_SLOPE`` (the scan's segmenter reused). It only adds links; a scan with support
 vertices keeps the tree's choice (the fit's skin has no ground candidate, so a link would be
-spent on the ground seam). Each count that may be chosen gets its whole fit, but the counts
-ahead are first priced by links grown one at a time on the first whole fit (:func:`grow_link`,
-Dem Bones' way of adding a bone): when those errors stay well above the slope rule's bar the
-search stops without fitting them; otherwise whole fits decide (:func:`_grown_upward`). The
-chosen count's fit is the one handed back, and at the stop the counts ahead are mostly never
-fitted whole.
+spent on the ground seam). The whole fits are spared where cheaper work gives the same decision
+(:func:`_grown_upward`): each count is first fitted up to its split stage (:func:`partial_fit`,
+finished with ``fit.fit(resume=...)`` only if it may be chosen), and the counts ahead are priced
+by links grown one at a time on it (:func:`grow_link`, Dem Bones' way of adding a bone). Grown
+links well below the slope rule's bar pass the count without a whole fit, well above it they stop
+the search; in between whole fits decide. The chosen count's fit is the one handed back.
+``benchmarks/results/links_auto.md`` has the counts against the whole-fit rule's.
 
 Links that are not bones, downward (the same scans). Where the true skin weights are smooth
 (many influences per vertex), the error keeps falling past the true count, because under the
@@ -260,11 +266,12 @@ GROWN_FLOOR = 0.1
 #: short of the exact segment the whole fit finds, the next ones at 0: passed 11)
 CONTINUE_DEPTH = 0
 #: the upward search stops on grown links (:func:`_grown_upward`) only when their errors stay above
-#: this many times the bar. A whole fit re-segments, swaps and (since main's split stage) splits
-#: links, so it can end far below the grown error of its count: 0.23-1.2 x on the shared sets
-#: (the Fox's own poses at 23 links: grown 1.92 x the bar, whole fits 0.43 x). At 2.5 the stops
-#: left to the grown links are CesiumMan's own poses (2.66 x, whole fits 2.1 x) and RiggedFigure's
-#: fresh poses (4.3 x, whole fits 1.8 x); every other stop is the whole fits' (links_auto.md)
+#: this many times the bar. A whole fit re-segments, swaps and splits links, so from a chain grown on
+#: the first whole fit it could end far below the grown error of its count (0.23-1.2 x; the Fox's own
+#: poses at 23 links: grown 1.92 x the bar, whole fits 0.43 x), and the margin was 2.5. Grown on the
+#: count's own fit (the chain starts again at every fit), the links land within 0.6-1.3 x of the next
+#: count's whole fit on CesiumMan, and its stops stood at 1.34-3.2 x (whole fits 1.27-2.1 x): at 1.25
+#: every grown stop on the shared sets is the whole fits' too (``links_auto.py --verify``, links_auto.md)
 GROWN_MARGIN = 1.25
 #: whole-fit error (percent) at which nothing is left to explain: the search stops, as
 #: :func:`_whole_fits_upward` does (a floor of 0.01 % would spare the rigid sets their window's
