@@ -58,20 +58,28 @@ DEFAULT_LINKS = 20
 #: link (the per-link work of every decomposition round and swap trial). With the segmentation's
 #: merge (below) fitted to the shared rigged sets' fixed-count fits, 2 to 36 links, 96 to 11,666
 #: vertices, 5 to 400 fields: within 0.5-2 x of the measured time (``benchmarks/results/estimate.md``)
-SKIN_SECONDS_PER_LINK_VERTEX_FIELD = 4.5e-7
-SKIN_SECONDS_PER_LINK = 0.019
+SKIN_SECONDS_PER_LINK_VERTEX_FIELD = 1.15e-6
+SKIN_SECONDS_PER_LINK = 0.03
 #: the segmentation's merge to k links (Λ merge, the links' medoids, the seam refinement): seconds
 #: per clustered unit × field clustered
 MERGE_SECONDS_PER_UNIT_FIELD = 5.5e-6
 #: tracked scans with more fields are segmented on this many (``fit.SEGMENT_FIELDS``)
 SEGMENT_FIELDS = 64
-#: a ``--links auto`` search (:mod:`linkcount`): the tree's error curve segments the scan for every
-#: count up to ``max_links`` (a merge as above plus this many seconds a count), then whole fits
-#: upward: about ``AUTO_WHOLE_FITS`` of them at the chosen count's size (the tree's pick, the chosen
-#: count, and a count ahead when the grown links do not settle the stop; a tree pick far below the
-#: truth costs one more a link, e.g. the Fox 17 -> 23) and ``window`` + 1 grown links
+#: a ``--links auto`` search (:mod:`linkcount`): the tree's error curve segments the scan at e(1) and
+#: from ``max_links`` down to where the big drop ends (:func:`linkcount.descending_curve`), about
+#: ``CURVE_SHARE`` of the counts (CesiumMan 17-20 of 30, the CraGL sets 15-18, RobotExpressive 30 of
+#: 54, the small rigid sets all), each a merge as below plus ``CURVE_SECONDS_PER_COUNT``; then about
+#: ``AUTO_WHOLE_FITS`` fits at the chosen count's size (fits run up to their split stage, the chosen
+#: count finished, whole fits where grown links do not settle a decision, the drop of links that
+#: are not bones) and ``AUTO_GROWN_LINKS`` grown links. Fitted to the shared sets' searches
+#: (``benchmarks/results/links_auto.md``)
+CURVE_SHARE = 0.6
 CURVE_SECONDS_PER_COUNT = 0.05
-AUTO_WHOLE_FITS = 2.5
+AUTO_WHOLE_FITS = 7.0
+AUTO_GROWN_LINKS = 4
+#: the search's fits are priced at this share of Max Links (the shared sets' searches end at
+#: 0.6-0.7 of the ``max(30, 1.5 × true)`` the benchmark gives them; 20 of the default 30)
+AUTO_LINKS_SHARE = 2 / 3
 #: the same work in fixed-count fits, for the search's progress (:class:`linkcount.SearchProgress`):
 #: a count of the curve, a link grown on a decomposition (:func:`linkcount.grow_link`)
 CURVE_FITS_PER_COUNT = 0.06
@@ -118,16 +126,17 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
     else:
         mem = full
     if strategy == "summed":
-        L = int(links or DEFAULT_LINKS)
+        m = int(max_links or 30)
+        # a search's fits are priced at AUTO_LINKS_SHARE of Max Links (20 of the default 30)
+        L = int(links or (max(1, round(AUTO_LINKS_SHARE * m)) if auto else DEFAULT_LINKS))
         merge = MERGE_SECONDS_PER_UNIT_FIELD * u * seg_fields
         secs, skin_mem = articulation_cost(vertices, fields, L)
         mem = max(mem, skin_mem + 8.0 * 3 * vertices * fields * 2 + FEATURE_BYTES * u * seg_fields)
         if auto:
-            m = int(max_links or 30)
-            seconds += m * (merge + CURVE_SECONDS_PER_COUNT) + AUTO_WHOLE_FITS * (merge + secs) \
-                + (4 + 1) * GROW_FITS * secs
-            # the whole fits the search keeps (their residuals, skins and motions)
-            mem += (4 + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L)
+            seconds += CURVE_SHARE * m * (merge + CURVE_SECONDS_PER_COUNT) + AUTO_WHOLE_FITS * (merge + secs) \
+                + AUTO_GROWN_LINKS * GROW_FITS * secs
+            # the fits the search keeps (their residuals, skins and motions)
+            mem += (AUTO_WHOLE_FITS + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L)
         else:
             seconds += merge + secs
     elif auto:
