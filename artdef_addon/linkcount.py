@@ -263,7 +263,9 @@ GROWN_FLOOR = 0.1
 #: chain's own error stands in for the count's, and the bar with it. A chain started far below the
 #: truth kept falling past it at depth 5 (the Fox's fresh poses from 17 links: passed 22, the true
 #: count, and stopped at 24), and at depth 1 on the 11-link branching sample (its grown 11th link
-#: short of the exact segment the whole fit finds, the next ones at 0: passed 11)
+#: short of the exact segment the whole fit finds, the next ones at 0: passed 11). With the floor
+#: below, depth 1 still passed the Fox's true count (22 → 23, both pose sets) and climbed CesiumMan's
+#: fresh seed 9 to 20
 CONTINUE_DEPTH = 0
 #: the upward search stops on grown links (:func:`_grown_upward`) only when their errors stay above
 #: this many times the bar. A whole fit re-segments, swaps and splits links, so from a chain grown on
