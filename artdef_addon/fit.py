@@ -817,32 +817,45 @@ def stage_pose(st: FitState) -> None:
 def stage_residuals(st: FitState) -> None:
     """residuals (§7, METHOD §9–§10): rest-space residual ``(P, N, 3)``, each link's own rigid
     RMS ``(P, L)``, the articulation and total RMS and the Karni–Gotsman figures
-    (docs/metrics.md). One pass per field and link (arrays within)."""
+    (docs/metrics.md). Blocks of fields at once (:data:`RESIDUAL_BLOCK_BYTES`): the skin of a
+    field is its blended transform B_v x + T_v, B_v = Σ_l w_vl R_l (N, 3, 3), T_v = Σ_l w_vl t_l,
+    two matrix products for the whole block."""
     x0, fields, weights, L = st.scan.vertices, st.fields, st.weights, st.n_links
     P, N = len(st.field_idx), x0.shape[0]
     residual = np.zeros((P, N, 3))
     art_err = np.zeros(P)
     tot_err = np.zeros(P)
     link_res = np.zeros((P, L))
-    # each link's own vertices as one (vertex, link) list: the links' rigid residuals in one pass a field
+    # each link's own vertices as one (vertex, link) list: the links' rigid residuals in one pass a block
     pl = np.concatenate([np.full(len(v), l) for l, v in enumerate(st.link_vids)]).astype(np.int64)
     pv = np.concatenate(st.link_vids).astype(np.int64)
     per_link = np.maximum(np.bincount(pl, minlength=L), 1)
-    links = _model.skin_links(weights)           # the vertices each link moves, found once for all fields
-    for i in range(P):
-        x1 = x0 + fields[i]
-        art = _model.skin(weights, st.Rf[i], st.tf[i], x0, links)
-        residual[i] = _model.rest_space_residual(weights, st.Rf[i], st.tf[i], x0, x1, art=art)
-        back = _model.skin(weights, st.Rf[i], st.tf[i], x0 + residual[i], links)
-        art_err[i] = np.sum((art - x1) ** 2)
-        tot_err[i] = np.sum((back - x1) ** 2)
+    step = max(1, int(RESIDUAL_BLOCK_BYTES // (8 * 9 * 4 * max(N, 1))))
+    for s in range(0, P, step):
+        c = slice(s, min(P, s + step))
+        n = c.stop - c.start
+        x1 = x0[None] + fields[c]                                                   # (n, N, 3)
+        B = np.matmul(weights, st.Rf[c].reshape(n, L, 9)).reshape(n, N, 3, 3)        # Σ_l w_l R_l
+        T = np.matmul(weights, st.tf[c])                                              # Σ_l w_l t_l
+        art = np.einsum("pnij,nj->pni", B, x0) + T
+        res = _model.blended_residual(B, x1 - art)
+        back = art + np.einsum("pnij,pnj->pni", B, res)
+        residual[c] = res
+        art_err[c] = np.einsum("pni,pni->p", art - x1, art - x1)
+        tot_err[c] = np.einsum("pni,pni->p", back - x1, back - x1)
         # rigid-motion residual of each link's own motion over its vertices (fit quality)
-        d = np.einsum("nij,nj->ni", st.Ro[i][pl], x0[pv]) + st.to[i][pl] - x1[pv]
-        link_res[i] = np.sqrt(np.bincount(pl, np.einsum("ni,ni->n", d, d), minlength=L) / per_link)
+        d = np.einsum("pnij,nj->pni", st.Ro[c][:, pl], x0[pv]) + st.to[c][:, pl] - x1[:, pv]
+        key = (np.arange(n)[:, None] * L + pl[None]).ravel()                        # (field, link) bins
+        sq = np.bincount(key, np.einsum("pni,pni->pn", d, d).ravel(), minlength=n * L).reshape(n, L)
+        link_res[c] = np.sqrt(sq / per_link)
     st.residual, st.link_residuals = residual, link_res
     st.rms_articulation = float(np.sqrt(art_err.sum() / (P * N)))
     st.rms_total = float(np.sqrt(tot_err.sum() / (P * N)))
     st.fidelity = _quality.fidelity(x0, fields, float(art_err.sum()))   # Karni–Gotsman, E_RMS
+
+
+#: bytes of the blended transforms of one block of fields in :func:`stage_residuals`
+RESIDUAL_BLOCK_BYTES = 32 * 2 ** 20
 
 
 #: the fit's stages in order: (name for progress and ``FitResult.timings``, function of a FitState)

@@ -132,15 +132,19 @@ def rest_space_residual(weights, R, t, x0, x1, art=None) -> np.ndarray:
     """δ (N, 3) with Σ_l w_l G_l (x0 + δ) = x1 exactly (METHOD §8 residual basis, in rest space).
     ``art``: :func:`skin` of ``x0`` when the caller has it already."""
     art = skin(weights, R, t, x0) if art is None else art
-    Bv = blended_linear(weights, R)
-    rhs = x1 - art
-    det = np.linalg.det(Bv)
+    return blended_residual(blended_linear(weights, R), x1 - art)
+
+
+def blended_residual(B, rhs) -> np.ndarray:
+    """δ (..., 3) with B δ = rhs for blended transforms ``B`` (..., 3, 3) (:func:`blended_linear`):
+    a solve where B is invertible, the pseudo-inverse where it is not (|det| ≤ 1e-10)."""
+    det = np.linalg.det(B)
     ok = np.abs(det) > 1e-10
     d = np.empty_like(rhs)
     if np.any(ok):
-        d[ok] = np.linalg.solve(Bv[ok], rhs[ok][..., None])[..., 0]
+        d[ok] = np.linalg.solve(B[ok], rhs[ok][..., None])[..., 0]
     if np.any(~ok):
-        d[~ok] = np.einsum("nij,nj->ni", np.linalg.pinv(Bv[~ok]), rhs[~ok])
+        d[~ok] = np.einsum("nij,nj->ni", np.linalg.pinv(B[~ok]), rhs[~ok])
     return d
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import threading
 
 import numpy as np
 from scipy.sparse import coo_matrix, diags
@@ -338,7 +339,8 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
             if src.size == 0 or limit <= 0:
                 continue
             key = (mesh, _digest(src))
-            reach = _REACH.get(key)
+            with _REACH_LOCK:
+                reach = _REACH.get(key)
             if reach is None:
                 if E is None:
                     length = np.linalg.norm(vertices[a[:, 0]] - vertices[a[:, 1]], axis=1)
@@ -346,9 +348,10 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
                     E = E.maximum(E.T)
                 reach = np.flatnonzero(np.isfinite(dijkstra(E, directed=False, indices=src, min_only=True,
                                                             limit=limit)))
-                _REACH[key] = reach
-                while len(_REACH) > REACH_CACHE:
-                    _REACH.pop(next(iter(_REACH)))
+                with _REACH_LOCK:       # split trials run on two threads (splits.THREADS)
+                    _REACH[key] = reach
+                    while len(_REACH) > REACH_CACHE:
+                        _REACH.pop(next(iter(_REACH)))
             cand[reach, l] = True
     cand[~cand.any(axis=1)] = True
     return cand
@@ -358,6 +361,7 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
 #: same links again and again: a swap or a relabelling changes a few links' vertices at a time)
 REACH_CACHE = 512
 _REACH: dict = {}
+_REACH_LOCK = threading.Lock()
 
 
 def _digest(*arrays) -> bytes:
@@ -596,45 +600,88 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
     articulation error Σ_p Σ_v ‖x̂ − x‖² of the returned skin. With ``details`` a fifth value
     holds :func:`_refine`'s details of the returned skin (what :mod:`swaps` prices links from).
     ``target``: stop early when the error cannot fall below it in the rounds left
-    (:data:`GIVE_UP_SLACK`), or (``far=(rounds, factor)``) when after ``rounds`` rounds it is still
-    ``factor`` times above it; the returned error is then above it. ``rows`` (S,): decompose on
+    (:data:`GIVE_UP_SLACK`), or (``far``, pairs ``(rounds, factor)``) when after ``rounds`` rounds it
+    is still ``factor`` times above it; the returned error is then above it. ``rows`` (S,): decompose on
     those vertices only (:func:`vertex_sample`; candidates still from the whole mesh): weights,
-    error and details are then the sample's, (S, L); :func:`full_skin` extends them to every vertex."""
-    kw["radius"] = radius
-    kw["details"] = details
-    L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
-    kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
-    target = kw.pop("target", None)
-    far = kw.pop("far", None)
-    w_init = kw.pop("w_init", None)
-    rows = kw.pop("rows", None)
-    if rows is not None:
-        # the decomposition on a vertex sample (:func:`vertex_sample`): candidates from the whole mesh
-        vertices, fields, kw["cand"] = vertices[rows], fields[:, rows], kw["cand"][rows]
-        w_init = None if w_init is None else w_init[rows]
-        if kw.get("ground") is not None:
-            kw["ground"] = kw["ground"][rows]
-    fields = _Flat.of(vertices, fields)
-    free = {}
-    w, e, *info = _refine(vertices, fields, faces, labels, R, t, w_init=w_init, free_out=free, **kw)
-    for i in range(iterations):
-        R1, t1 = update_motions(vertices, fields, w, R, t)
-        # the weight solve starts from the last round's convex optimum (fewer active-set steps)
+    error and details are then the sample's, (S, L); :func:`full_skin` extends them to every vertex.
+    The rounds are :class:`Alternation`'s."""
+    run = Alternation(vertices, fields, faces, labels, R, t, iterations, tol, radius, details=details, **kw)
+    run.start()
+    while not run.finished:
+        run.step()
+    return run.result()
+
+
+class Alternation:
+    """One skin decomposition (:func:`alternate_scored`) advanced a round at a time, so that several
+    of them — the split trials of a round (:func:`splits.split_links`) — can run in lockstep, be
+    compared round by round and stepped on two threads. :meth:`start` solves the weights for the
+    starting motions (round 0); each :meth:`step` updates the motions and then the weights (one
+    round); ``finished`` is set once the rounds are used up, the error falls by less than ``tol``,
+    the ``target`` is out of reach, or :meth:`stop` was called. ``e`` is the current error,
+    ``rounds`` the rounds done. Only numpy work on the run's own arrays: separate runs may step
+    on separate threads."""
+
+    def __init__(self, vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS,
+                 details=False, target=None, far=None, w_init=None, rows=None, **kw):
+        kw["radius"] = radius
+        kw["details"] = details
+        self.args = (vertices, fields, faces, labels, R, t)
+        self.kw, self.iterations, self.tol = kw, iterations, tol
+        self.target, self.far, self.w_init, self.rows = target, far, w_init, rows
+        self.rounds, self.finished, self.e = 0, False, np.inf
+
+    def start(self) -> None:
+        """Candidates, the vertex sample's arrays and the first weight solve (round 0)."""
+        vertices, fields, faces, labels, R, t = self.args
+        kw, rows, w_init = self.kw, self.rows, self.w_init
+        L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
+        kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), kw["radius"], kw.get("ground"))
+        if rows is not None:
+            # the decomposition on a vertex sample (:func:`vertex_sample`): candidates from the whole mesh
+            vertices, fields, kw["cand"] = vertices[rows], fields[:, rows], kw["cand"][rows]
+            w_init = None if w_init is None else w_init[rows]
+            if kw.get("ground") is not None:
+                kw["ground"] = kw["ground"][rows]
+        self.vertices, self.fields, self.faces, self.labels = vertices, _Flat.of(vertices, fields), faces, labels
+        self.free = {}
+        self.w, self.e, *self.info = _refine(vertices, self.fields, faces, labels, R, t, w_init=w_init,
+                                             free_out=self.free, **kw)
+        self.R, self.t = R, t
+        self.finished = self.iterations <= 0
+
+    def step(self) -> None:
+        """One round: the motions for the weights (:func:`update_motions`), then the weights for the
+        motions, warm-started from the last round's convex optimum (fewer active-set steps)."""
+        if self.finished:
+            return
+        i, e, target = self.rounds, self.e, self.target
+        R1, t1 = update_motions(self.vertices, self.fields, self.w, self.R, self.t)
         free1 = {}
-        w1, e1, *info1 = _refine(vertices, fields, faces, labels, R1, t1, w_init=w, w_free=free["w"],
-                                 free_out=free1, **kw)
+        w1, e1, *info1 = _refine(self.vertices, self.fields, self.faces, self.labels, R1, t1, w_init=self.w,
+                                 w_free=self.free["w"], free_out=free1, **self.kw)
         if e1 > e:      # round-off only: keep the better pair
-            break
-        done = e - e1 <= tol * e
+            self.finished = True
+            return
+        done = e - e1 <= self.tol * e
         # a trial that cannot reach ``target`` in its remaining rounds: the alternation's drops
         # shrink from round to round (measured on the real sets; GIVE_UP_SLACK for the odd rise)
-        hopeless = target is not None and e1 - GIVE_UP_SLACK * (e - e1) * (iterations - 1 - i) > target
-        if far is not None and target is not None and i + 1 >= far[0] and e1 > far[1] * target:
-            hopeless = True     # still far above the target after far[0] rounds (splits.FAR)
-        w, R, t, e, info, free = w1, R1, t1, e1, info1, free1
-        if done or hopeless:
-            break
-    return (w, R, t, e, *info)
+        hopeless = target is not None and e1 - GIVE_UP_SLACK * (e - e1) * (self.iterations - 1 - i) > target
+        if self.far is not None and target is not None:
+            # still far above the target after so many rounds (splits.FAR)
+            bars = [f for r, f in self.far if i + 1 >= r]
+            hopeless |= bool(bars) and e1 > min(bars) * target
+        self.w, self.R, self.t, self.e, self.info, self.free = w1, R1, t1, e1, info1, free1
+        self.rounds = i + 1
+        self.finished = done or hopeless or self.rounds >= self.iterations
+
+    def stop(self) -> None:
+        """Give the run up where it stands (a lockstep comparison found it far behind)."""
+        self.finished = True
+
+    def result(self) -> tuple:
+        """``(weights, R, t, error)`` and, with ``details``, :func:`_refine`'s details."""
+        return (self.w, self.R, self.t, self.e, *self.info)
 
 
 #: vertices the relabelling's, the swap trials' and most of the refined skin's decompositions are

@@ -321,3 +321,88 @@ def test_fitted_faces_belong_to_the_link_dominating_the_kept_skin():
     dom = merge.dominant_faces(r.weights, scan.faces, r.face_labels)
     assert np.array_equal(r.face_labels, dom)
     assert r.articulation_error_percent < 0.1
+
+
+def _rod_runs(seed=3):
+    """The blended three-link rod and three starts for its decomposition: the true labels, and two
+    wrong ones (bone 1 in two links, bones 2 and 3 in one; and the seams swapped round)."""
+    from artdef_addon import skinning
+    scan, truth = samples.make_with_truth("rod", n_fields=8, blend=2.0, seed=seed)
+    x0, f, u = scan.vertices, scan.faces, scan.displacements
+    cx = x0[f].mean(axis=1)[:, 0]
+    starts = [truth["face_labels"], np.where(cx < 6, 0, np.where(cx < 12, 1, 2)),
+              np.where(cx < 3, 2, np.where(cx < 16, 0, 1))]
+
+    def runs(**kw):
+        out = []
+        for lab in starts:
+            R, t = joints.lsq_motions(x0, u, f, lab, 3)
+            out.append(skinning.Alternation(x0, u, f, lab, R, t, iterations=10, **kw))
+        return out
+    return scan, starts, runs
+
+
+def test_lockstep_trials_give_up_the_far_behind_and_keep_the_best_as_run_alone():
+    """splits.run_lockstep: after ``behind_round`` rounds a run above ``behind`` x the lowest error is
+    stopped there; the best run (the true labels) goes on to the same weights and error as alone
+    (skinning.alternate_scored), on one thread or two alike."""
+    from artdef_addon import skinning, splits
+    scan, starts, runs = _rod_runs()
+    x0, f, u = scan.vertices, scan.faces, scan.displacements
+    results = []
+    for threads in (1, 2):
+        rs = runs()
+        splits.run_lockstep(rs, behind_round=2, behind=1.5, keep=3, threads=threads)
+        results.append(rs)
+        assert min(range(3), key=lambda i: rs[i].e) == 0
+        # the wrong starts stood far behind after 2 rounds: stopped there
+        assert all(r.finished and r.rounds == 2 and r.e > 1.5 * rs[0].e for r in rs[1:])
+    R, t = joints.lsq_motions(x0, u, f, starts[0], 3)
+    w, _, _, e = skinning.alternate_scored(x0, u, f, starts[0], R, t, iterations=10)
+    for rs in results:
+        assert rs[0].e == e and np.array_equal(rs[0].w, w)
+    assert all(a.e == b.e and np.array_equal(a.w, b.w) for a, b in zip(*results))
+    # keep=1: only the lowest goes on after round 2, whatever the ratio
+    rs = runs()
+    splits.run_lockstep(rs, behind_round=2, behind=1e9, keep=1, threads=1)
+    assert rs[0].e == e and all(r.rounds == 2 for r in rs[1:])
+
+
+def test_far_gives_up_a_trial_still_far_above_its_target_after_its_rounds():
+    """skinning.Alternation's ``far`` pairs (rounds, factor): a run still ``factor`` x above its
+    target after ``rounds`` rounds stops there; without them it goes on (the slack rule cannot
+    stop it: 1000 rounds left)."""
+    from artdef_addon import skinning
+    scan, starts, _ = _rod_runs()
+    x0, f, u = scan.vertices, scan.faces, scan.displacements
+    R, t = joints.lsq_motions(x0, u, f, starts[1], 3)
+    e0 = skinning.alternate_scored(x0, u, f, starts[1], R, t, iterations=0)[3]
+    for far, stop in ((((1, 8.0),), 1), (((3, 8.0), (1, 1e12)), 3), (None, None)):
+        run = skinning.Alternation(x0, u, f, starts[1], R, t, iterations=1000, target=e0 / 1e6, far=far)
+        run.start()
+        while not run.finished and run.rounds < 6:
+            run.step()
+        assert run.rounds == (6 if stop is None else stop) and run.e > 8.0 * e0 / 1e6
+
+
+def test_residual_blocks_reproduce_every_field_exactly():
+    """stage_residuals in blocks of fields (one field a block, or all at once): the rig skinning the
+    rest shape plus its residual gives each field back, and the blocks do not change the answer."""
+    from artdef_addon import model
+    scan = samples.make("branching")
+    res = {}
+    for nbytes in (1, 2 ** 30):
+        old = F.RESIDUAL_BLOCK_BYTES
+        F.RESIDUAL_BLOCK_BYTES = nbytes
+        try:
+            res[nbytes] = F.fit(scan, 5)
+        finally:
+            F.RESIDUAL_BLOCK_BYTES = old
+    a, b = res[1], res[2 ** 30]
+    assert np.allclose(a.residual, b.residual, rtol=0, atol=1e-12)
+    assert np.allclose(a.link_residuals, b.link_residuals, rtol=0, atol=1e-12)
+    x0 = scan.vertices
+    Rf, tf = model.forward_kinematics(a.parents, a.heads, a.frames, a.params)
+    for p in range(scan.n_fields):
+        back = model.skin(a.weights, Rf[p], tf[p], x0 + a.residual[p])
+        assert np.allclose(back, x0 + scan.displacements[p], atol=1e-9)
