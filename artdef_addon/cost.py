@@ -81,6 +81,10 @@ CURVE_SHARE = 0.6
 CURVE_SECONDS_PER_COUNT = 0.0
 AUTO_WHOLE_FITS = 3.0
 AUTO_GROWN_LINKS = 8
+#: the search's peak memory beyond one fit's, per link × vertex × field (fitted to the shared sets'
+#: searches after main's lockstep split trials, da2876b: 0.44-2.26 x of the measured peak RSS rise,
+#: the ends RiggedSimple's 5 MB and RobotExpressive's fresh poses, ten whole fits kept)
+AUTO_BYTES_PER_LINK_VERTEX_FIELD = 10.0
 #: the search's fits are priced at this share of Max Links (the shared sets' searches end at
 #: 0.6-0.7 of the ``max(30, 1.5 × true)`` the benchmark gives them; 20 of the default 30)
 AUTO_LINKS_SHARE = 2 / 3
@@ -140,8 +144,10 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
         if auto:
             seconds += CURVE_SHARE * m * (merge + CURVE_SECONDS_PER_COUNT) + AUTO_WHOLE_FITS * (merge + secs) \
                 + AUTO_GROWN_LINKS * GROW_FITS * secs
-            # the fits the search keeps (their residuals, skins and motions)
-            mem += (AUTO_WHOLE_FITS + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L)
+            # the fits the search keeps (their residuals, skins and motions), and what its fits and grown
+            # links hold per link, vertex and field (AUTO_BYTES_PER_LINK_VERTEX_FIELD)
+            mem += (AUTO_WHOLE_FITS + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L) \
+                + AUTO_BYTES_PER_LINK_VERTEX_FIELD * vertices * fields * L
         else:
             seconds += merge + secs
     elif auto:
