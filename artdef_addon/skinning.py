@@ -1,8 +1,10 @@
 """Seam-blended skin weights (paper Eq. 2, "blended linearly" at the seams; METHOD §8, choice A-15)."""
 from __future__ import annotations
 
+import contextlib
 import functools
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy.sparse import coo_matrix, diags
@@ -610,6 +612,26 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
     while not run.finished:
         run.step()
     return run.result()
+
+
+@contextlib.contextmanager
+def stepping(threads: int, n: int):
+    """A function ``each(fn, items)`` that calls ``fn`` on every item: on ``threads`` threads where
+    ``threads`` and the ``n`` runs stepped are above one (numpy releases the GIL in most of a
+    decomposition round), else in turn. The threads end with the ``with`` block."""
+    pool = ThreadPoolExecutor(threads) if threads > 1 and n > 1 else None
+
+    def each(fn, items):
+        if pool is None:
+            for a in items:
+                fn(a)
+        else:
+            list(pool.map(fn, items))
+    try:
+        yield each
+    finally:
+        if pool is not None:
+            pool.shutdown()
 
 
 class Alternation:

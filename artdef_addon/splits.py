@@ -32,13 +32,13 @@ next round starts from there. The link count never changes and E falls at every 
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from .joints import lsq_motions
 from .merge import dominant_faces
+from .metric import worker_count
 from .quality import vertex_spread
+from .skinning import stepping
 from .swaps import reassign_faces
 
 #: links tried for a cut per round: those whose vertices hold most of the decomposition error
@@ -63,8 +63,9 @@ BEHIND_ROUND = 2
 BEHIND = 1.5
 #: ... and so is every trial but the ``KEEP`` lowest then
 KEEP = 3
-#: threads the trials of a round are stepped on (numpy releases the GIL in most of a round's work:
-#: 1.2-1.45x on the 2-core machine with two; the answers do not depend on it)
+#: threads the trials of a round are stepped on, at most one per core the process may use (numpy
+#: releases the GIL in most of a round's work: 1.2-1.45x on the 2-core machine with two; the answers
+#: do not depend on it)
 THREADS = 2
 #: rounds of splits at most (each keeps one)
 MAX_SPLITS = 4
@@ -84,28 +85,21 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
                  keep: int | None = None, threads: int | None = None) -> None:
     """Run the :class:`skinning.Alternation` ``runs`` (one round's split trials) to their end in
     lockstep: all start, then every unfinished one steps a round at a time, on ``threads`` threads
-    (default :data:`THREADS`). After ``behind_round`` rounds (default :data:`BEHIND_ROUND`) a run
-    whose error is above ``behind`` (default :data:`BEHIND`) times the lowest error of the runs
-    is stopped: the trial a round keeps is the one of lowest error, and on the rigged models
-    (RobotExpressive and CesiumMan fresh poses, the wolf, cheburashka, dembones_bone: 181 rounds of
-    trials) the kept one never stood above 1.3x the best after 2 rounds, while most losing ones
-    stood at 1.5-20x. Each run's arithmetic is its own, so the results do not depend on the
-    threads."""
+    (default :data:`THREADS`, at most one per core: :func:`metric.worker_count`). After
+    ``behind_round`` rounds (default :data:`BEHIND_ROUND`) a run whose error is above ``behind``
+    (default :data:`BEHIND`) times the lowest error of the runs, or above the ``keep``-th lowest
+    (default :data:`KEEP`), is stopped: on the rigged models (18 fits of RobotExpressive's and
+    CesiumMan's fresh poses, the wolf, cheburashka and dembones_bone: 41 rounds, 509 trials) the
+    trial a round kept never stood above 1.5x the lowest error nor below third after 2 rounds,
+    while most losing ones stood at 1.5-20x. Each run's arithmetic is its own, so the results do
+    not depend on the threads."""
     behind_round = BEHIND_ROUND if behind_round is None else behind_round
     behind = BEHIND if behind is None else behind
     keep = KEEP if keep is None else keep
-    threads = THREADS if threads is None else threads
+    threads = min(THREADS, worker_count()) if threads is None else threads
     if not runs:
         return
-    pool = ThreadPoolExecutor(threads) if threads > 1 and len(runs) > 1 else None
-
-    def each(fn, items):
-        if pool is None:
-            for a in items:
-                fn(a)
-        else:
-            list(pool.map(fn, items))
-    try:
+    with stepping(threads, len(runs)) as each:
         each(lambda a: a.start(), runs)
         r = 0
         while True:
@@ -120,9 +114,6 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
                 for a in runs:
                     if not a.finished and (a.e > behind * low or a.e > ahead):
                         a.stop()
-    finally:
-        if pool is not None:
-            pool.shutdown()
 
 
 def _relabel(x0, fields, faces, labels, w, R, t, e, units, rows=None):

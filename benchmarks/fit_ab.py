@@ -3,7 +3,8 @@
 For each set and repetition the fit of checkout A and of checkout B run one after the other, each in
 a fresh process (so their module caches and the machine's load are shared alike), alternating which
 goes first. Prints per set the median CPU seconds of each (``time.process_time`` of ``fit.fit`` with
-its Segmenter: all threads), their ratio B/A, and the answers of one run of each: the Karni–Gotsman
+its Segmenter: all threads) and the median wall seconds (the split trials run on two threads), their
+ratios B/A, and the answers of one run of each: the Karni–Gotsman
 articulation error, the ARI against the true face labels and the true joints found within 2 % of the
 bounding-box diagonal (where the truth is known), and the number of weight solves
 (``skinning._refine`` calls) and link-motion updates (``skinning.update_motions``) with their vertex
@@ -113,14 +114,19 @@ def main(argv=None) -> None:
                 r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
                 runs[side].append(r)
         med = {s: sorted(r["cpu"] for r in runs[s])[len(runs[s]) // 2] for s in runs}
+        wall = {s: sorted(r["wall"] for r in runs[s])[len(runs[s]) // 2] for s in runs}
         same = answers(runs["A"][0]) == answers(runs["B"][0])
         label = name + ("" if args.fresh is None else f" (fresh seed {args.fresh})")
         rows.append((label, runs["A"][0]["links"], med["A"], med["B"], med["B"] / med["A"],
-                     answers(runs["A"][0]), "same" if same else answers(runs["B"][0])))
-        print(f"{label}: A {med['A']:.2f} s, B {med['B']:.2f} s CPU (B/A {med['B'] / med['A']:.2f}); "
+                     answers(runs["A"][0]), "same" if same else answers(runs["B"][0]),
+                     wall["A"], wall["B"], wall["B"] / wall["A"]))
+        print(f"{label}: A {med['A']:.2f} s, B {med['B']:.2f} s CPU (B/A {med['B'] / med['A']:.2f}), "
+              f"wall A {wall['A']:.2f} s, B {wall['B']:.2f} s (B/A {wall['B'] / wall['A']:.2f}); "
               f"A: {answers(runs['A'][0])}; B: {'same' if same else answers(runs['B'][0])}", flush=True)
-    table = ["| set | links | A CPU s | B CPU s | B/A | answers of A | answers of B |", "|---|---:|---:|---:|---:|---|---|"]
-    table += [f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.2f} | {r[4]:.2f} | {r[5]} | {r[6]} |" for r in rows]
+    table = ["| set | links | A CPU s | B CPU s | B/A CPU | A wall s | B wall s | B/A wall | answers of A | answers of B |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+    table += [f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.2f} | {r[4]:.2f} | {r[7]:.2f} | {r[8]:.2f} | {r[9]:.2f} | {r[5]} | {r[6]} |"
+              for r in rows]
     print("\n".join(table))
     if args.out:
         with open(args.out, "a", encoding="utf-8") as fh:
