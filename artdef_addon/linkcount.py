@@ -344,7 +344,8 @@ def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> Lin
         t0 = time.perf_counter()
         if k < max_links:
             k1, ef, eg, decisions = _grown_upward(seg, k, max_links, window, search, fits, work)
-            why += f". Whole fits from {k} links" + (f": error {ef[k]:.3g}%" if k in ef else "")
+            why += f". Whole fits from {k} links" + (f": error {ef[k]:.3g}%" if k in ef
+                                                     else " (passed on links grown on its fit)")
             if k1 > k:
                 why += f", {ef[k1]:.3g}% with {k1}"
             why += f"; beyond it the error falls slower than k^-{WHOLE_FIT_SLOPE:g} over {window} more links"
