@@ -53,25 +53,41 @@ def full_memory(triangles: int, fields: int, vertices: int) -> float:
 #: links assumed by the estimate when the count is not given (or chosen automatically)
 DEFAULT_LINKS = 20
 #: tracked scans: the articulation stage (the relabelling's skin decompositions and link swaps, the
-#: refined skin; since the third speed push on a vertex sample and at most 64 fields, the skin
-#: polished and extended on every vertex and field): seconds per link × vertex × field and per
-#: link (the per-link work of every decomposition round and swap trial). With the segmentation's
-#: merge (below) fitted to the shared rigged sets' fixed-count fits, 2 to 36 links, 96 to 11,666
-#: vertices, 5 to 400 fields: within 0.5-2 x of the measured time (``benchmarks/results/estimate.md``)
-SKIN_SECONDS_PER_LINK_VERTEX_FIELD = 4.5e-7
-SKIN_SECONDS_PER_LINK = 0.019
+#: refined skin, the split stage; since the third speed push on a vertex sample and at most 64
+#: fields, the skin polished and extended on every vertex and field): seconds per link × vertex ×
+#: field and per link (the per-link work of every decomposition round and swap trial). Refitted
+#: after the split stage (issue 19) to the fixed fits of ``benchmarks/links_auto.py`` (15 sets and
+#: pose kinds, 2 to 36 links, 96 to 11,666 vertices, 5 to 27 fields): 0.55-1.8 x of the measured time
+#: (``benchmarks/results/links_auto.md``; before, 0.45-0.65 x on the Fox and cheburashka)
+SKIN_SECONDS_PER_LINK_VERTEX_FIELD = 7.0e-7
+SKIN_SECONDS_PER_LINK = 0.03
 #: the segmentation's merge to k links (Λ merge, the links' medoids, the seam refinement): seconds
 #: per clustered unit × field clustered
 MERGE_SECONDS_PER_UNIT_FIELD = 5.5e-6
 #: tracked scans with more fields are segmented on this many (``fit.SEGMENT_FIELDS``)
 SEGMENT_FIELDS = 64
-#: a ``--links auto`` search (:mod:`linkcount`): the tree's error curve segments the scan for every
-#: count up to ``max_links`` (a merge as above plus this many seconds a count), then whole fits
-#: upward: about ``AUTO_WHOLE_FITS`` of them at the chosen count's size (the tree's pick, the chosen
-#: count, and a count ahead when the grown links do not settle the stop; a tree pick far below the
-#: truth costs one more a link, e.g. the Fox 17 -> 23) and ``window`` + 1 grown links
-CURVE_SECONDS_PER_COUNT = 0.05
-AUTO_WHOLE_FITS = 2.5
+#: a ``--links auto`` search (:mod:`linkcount`): the tree's error curve segments the scan at e(1) and
+#: from ``max_links`` down to where the big drop ends (:func:`linkcount.descending_curve`), about
+#: ``CURVE_SHARE`` of the counts (CesiumMan 17-20 of 30, the CraGL sets 15-18, RobotExpressive 30 of
+#: 54, the small rigid sets all), each a merge as below plus ``CURVE_SECONDS_PER_COUNT``; then about
+#: ``AUTO_WHOLE_FITS`` fits at ``AUTO_LINKS_SHARE`` of Max Links (fits run up to their split stage,
+#: the chosen count finished, whole fits where grown links do not settle a decision, the drop of
+#: links that are not bones) and ``AUTO_GROWN_LINKS`` grown links. Fitted to the shared sets'
+#: searches (minimax of the log ratio): within 2 x on 8 of 15 (CesiumMan 0.54-0.82 x, cheburashka
+#: 1.5 x, RobotExpressive's own poses 1.0 x); what the counts cannot tell is how many fits the
+#: decisions take: 1 (CesiumMan, the wolf, the rigid sets: 0.27-0.54 x, 1-7 s) to 10
+#: (RobotExpressive's fresh poses, its tree pick 8 links short: 3.7 x)
+CURVE_SHARE = 0.6
+CURVE_SECONDS_PER_COUNT = 0.0
+AUTO_WHOLE_FITS = 3.0
+AUTO_GROWN_LINKS = 8
+#: the search's peak memory beyond one fit's, per link × vertex × field (fitted to the shared sets'
+#: searches after main's lockstep split trials, da2876b: 0.44-2.26 x of the measured peak RSS rise,
+#: the ends RiggedSimple's 5 MB and RobotExpressive's fresh poses, ten whole fits kept)
+AUTO_BYTES_PER_LINK_VERTEX_FIELD = 10.0
+#: the search's fits are priced at this share of Max Links (the shared sets' searches end at
+#: 0.6-0.7 of the ``max(30, 1.5 × true)`` the benchmark gives them; 20 of the default 30)
+AUTO_LINKS_SHARE = 2 / 3
 #: the same work in fixed-count fits, for the search's progress (:class:`linkcount.SearchProgress`):
 #: a count of the curve, a link grown on a decomposition (:func:`linkcount.grow_link`)
 CURVE_FITS_PER_COUNT = 0.06
@@ -104,7 +120,8 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
     (or is chosen for speed, :func:`faster_reduced`). Tracked scans (``strategy`` "summed") add
     the merge to ``links`` links and the articulation stage (default :data:`DEFAULT_LINKS`);
     ``auto`` prices a ``--links auto`` search up to ``max_links`` (default 30) instead: the tree's
-    error curve and :data:`AUTO_WHOLE_FITS` whole fits (the fits it keeps are in the memory)."""
+    error curve, :data:`AUTO_WHOLE_FITS` fits at :data:`AUTO_LINKS_SHARE` of ``max_links`` links and
+    :data:`AUTO_GROWN_LINKS` grown links (the fits it keeps are in the memory)."""
     full = full_memory(triangles, fields, vertices)
     reduced = full > budget or faster_reduced(triangles, fields, budget)
     u = triangles if not reduced else (units or min(triangles, reduced_units(budget, fields)))
@@ -118,16 +135,19 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
     else:
         mem = full
     if strategy == "summed":
-        L = int(links or DEFAULT_LINKS)
+        m = int(max_links or 30)
+        # a search's fits are priced at AUTO_LINKS_SHARE of Max Links (20 of the default 30)
+        L = int(links or (max(1, round(AUTO_LINKS_SHARE * m)) if auto else DEFAULT_LINKS))
         merge = MERGE_SECONDS_PER_UNIT_FIELD * u * seg_fields
         secs, skin_mem = articulation_cost(vertices, fields, L)
         mem = max(mem, skin_mem + 8.0 * 3 * vertices * fields * 2 + FEATURE_BYTES * u * seg_fields)
         if auto:
-            m = int(max_links or 30)
-            seconds += m * (merge + CURVE_SECONDS_PER_COUNT) + AUTO_WHOLE_FITS * (merge + secs) \
-                + (4 + 1) * GROW_FITS * secs
-            # the whole fits the search keeps (their residuals, skins and motions)
-            mem += (4 + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L)
+            seconds += CURVE_SHARE * m * (merge + CURVE_SECONDS_PER_COUNT) + AUTO_WHOLE_FITS * (merge + secs) \
+                + AUTO_GROWN_LINKS * GROW_FITS * secs
+            # the fits the search keeps (their residuals, skins and motions), and what its fits and grown
+            # links hold per link, vertex and field (AUTO_BYTES_PER_LINK_VERTEX_FIELD)
+            mem += (AUTO_WHOLE_FITS + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L) \
+                + AUTO_BYTES_PER_LINK_VERTEX_FIELD * vertices * fields * L
         else:
             seconds += merge + secs
     elif auto:

@@ -948,7 +948,7 @@ def _bones(x0, faces, labels, parents, joint, centroid, diag):
 
 def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_max=None,
         progress=None, segmenter: Segmenter | None = None, strategy: str = "auto",
-        skin: str = "auto") -> FitResult:
+        skin: str = "auto", resume=None) -> FitResult:
     """Fit an articulated deformable model to ``scan`` with ``links`` links (paper §5–§7): the
     :data:`STAGES` in order (``result.timings``: seconds per stage, the segment stage as its
     parts features, cluster and merge).
@@ -966,12 +966,15 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     second BLAS thread only spins — measured on the 2-core machine, quiet: the same wall time at
     half the CPU (CesiumMan 3.0 s at 3.0 s of CPU against 3.0–3.6 s at 5.9–7.0 s); loaded: 2.3–3.6 ×
     faster. The results are the same (weights within 1e-11).
+
+    ``resume``: ``(state, seconds)``, a :class:`FitState` of this fit the first stages have run on
+    and their seconds per stage (:mod:`linkcount` decides on them): the fit runs the rest.
     """
     with single_threaded():
-        return _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin)
+        return _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin, resume)
 
 
-def _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin) -> FitResult:
+def _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin, resume=None) -> FitResult:
     try:
         links = int(links)
     except (TypeError, ValueError):
@@ -984,9 +987,13 @@ def _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin) 
     seg._check_k(links)
     if skin == "auto":
         skin = "seam" if scan.kind == "greens" else "refined"
-    state = FitState(scan=scan, seg=seg, links=links, motion=motion, skin=skin,
-                     field_idx=list(range(scan.n_fields)))
-    stage_times = run_stages(state, progress)
+    if resume is not None:
+        state, done = resume
+        stage_times = {**done, **run_stages(state, progress, STAGES[len(done):])}
+    else:
+        state = FitState(scan=scan, seg=seg, links=links, motion=motion, skin=skin,
+                         field_idx=list(range(scan.n_fields)))
+        stage_times = run_stages(state, progress)
     result = _result(state, stage_times)
     result.skin = skin
     result.mode = mode

@@ -175,7 +175,7 @@ class FitOptions:
                     "off by default (linear response)")
     max_links: int = _field(
         30, label="Max Links", type=int, min=1, max=MAX_AUTO_LINKS, soft_max=64,
-        why_max=" (each count up to it is fitted)",
+        why_max=" (the error curve segments the counts up to it)",
         description="Links auto: the largest link count tried")
     memory_budget: float = _field(
         2.0, label="Memory Budget", type=float, unit="GB", min=0.0, min_exclusive=True, max=1e6,

@@ -6,13 +6,20 @@ max(30, 1.5 × true) links, as ``compare_dembones.py`` does, and prints the tree
 re-cut tree's error curve), the pick after the whole fits upward, the final pick (after
 interpolating links are dropped) and its distance from the true count, the seconds and the chooser's reason. Heavy: minutes per character; not a test.
 
-Side by side in one process, each with a new Segmenter: the fixed-count fit at the true count
-(``fit.fit``), then the search; "× fixed" is their time ratio (issue 16: at most 3). The search's
+Side by side in one process (one process a set and pose kind), each with a new Segmenter: the
+search, then the fixed-count fit at the true count (``fit.fit``); "× fixed" is their time ratio (issue 16: at most 3). The search's
 seconds split into the tree curve, the upward pass and the drop of links that are not bones;
 "stops" says how each upward decision was made (``linkcount._grown_upward``): "grown" when the
 links grown on a whole fit levelled off (no whole fit of the counts ahead), "whole" when whole
-fits did. With ``--verify`` every "grown" stop is checked against the whole fits of the counts
-ahead (the whole-fit rule's own decision).
+fits did, "grown continue" when the grown links fell far below the bar (the count passed without a
+whole fit). With ``--verify`` every "grown" stop is checked against the whole fits of the counts
+ahead (the whole-fit rule's own decision). "whole / partial fits / grown links": the whole fits the
+search made (the upward pass and the drop), the fits it ran up to their split stage
+(``linkcount.partial_fit``; those it finished are among the whole fits) and the links it grew.
+
+Issue 16's estimate: "est. (s)" is what ``fit --links auto`` prints before the search
+(``api.plan(..., auto=True)``), "peak MB" the rise of the process's peak RSS during the search
+(the peak reset before it through ``/proc/self/clear_refs``), "est. MB" the estimate's memory.
 
     .venv/bin/python benchmarks/links_auto.py --data ../shared/data [--only Fox,Robot]
 """
@@ -20,16 +27,78 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import time
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from artdef_addon import fit as F, linkcount, samples, scan as S  # noqa: E402
+from artdef_addon import api, fit as F, linkcount, samples, scan as S  # noqa: E402
+
+
+def _status(key: str) -> float:
+    """A /proc/self/status figure in bytes (VmRSS, VmHWM), 0 where there is none."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def _reset_peak() -> None:
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
 
 SETS = ["gltf_RiggedSimple", "cragl_cylinder_gt", "gltf_RiggedFigure", "gltf_Fox", "cragl_cube_gt",
         "threejs_RobotExpressive", "gltf_CesiumMan", "cragl_cow_gt", "cragl_wolf_gt", "cragl_cheburashka_gt"]
+
+
+def row(data: str, name: str, kind: str, verify: bool) -> None:
+    """One set and pose kind, in a process of its own: the search first (its peak memory is the
+    process's from there), then the fixed fit at the true count; prints the table row."""
+    with np.load(os.path.join(data, f"{name}.npz"), allow_pickle=False) as z:
+        d = {k: z[k] for k in z.files}
+    L = len(np.unique(d["gt_face_labels"]))
+    u = d["displacements"] if kind == "own" else samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"],
+                                                                      d["gt_parents"], 20, seed=1)
+    scan = S.Scan(d["vertices"], d["faces"], displacements=u)
+    mx = max(30, int(1.5 * L))
+    est, _ = api.plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind,
+                      auto=True, max_links=mx)
+    _reset_peak()
+    rss = _status("VmRSS")
+    t0 = time.perf_counter()
+    seg = F.Segmenter(scan)
+    c = linkcount.choose_links(seg, max_links=mx)
+    dt = time.perf_counter() - t0
+    peak = max(_status("VmHWM") - rss, 0.0)
+    t0 = time.perf_counter()
+    F.fit(scan, L, segmenter=F.Segmenter(scan))
+    fixed = time.perf_counter() - t0
+    stops = ", ".join(f"{k} {how}" for k, how in c.decisions if how != "continue")
+    if verify:
+        for k, how in c.decisions:
+            if how == "grown":
+                j = min(mx, k + 4)
+                bar = min(v for q, v in c.whole_errors.items() if q <= k) * (k / j) ** linkcount.WHOLE_FIT_SLOPE
+                low = min(float(F.fit(scan, i, segmenter=seg).articulation_error_percent) for i in range(k + 1, j + 1))
+                stops += " (whole fits agree)" if low >= bar else f" (WHOLE FITS DISAGREE: {low:.4g} < {bar:.4g})"
+    parts = " / ".join(f"{c.timings.get(p, 0.0):.1f}" for p in ("curve", "upward", "drop"))
+    work = f"{c.work.get('whole_fits', 0)} / {c.work.get('partial_fits', 0)} / {c.work.get('grown_links', 0)}"
+    mb = 2.0 ** 20
+    print(f"| {name} | {kind} | {L} | {c.tree_links} | {c.upward_links} | {c.links} | {100 * (c.links - L) / L:+.0f} % "
+          f"| {fixed:.1f} | {dt:.1f} | {dt / fixed:.2f} | {parts} | {work} | {est.seconds:.1f} "
+          f"| {dt / est.seconds:.2f} | {peak / mb:.0f} | {est.memory_bytes / mb:.0f} "
+          f"| {peak / est.memory_bytes:.2f} | {stops} |", flush=True)
+    ratios = ", ".join(f"{k}: {r:.2f}" for k, r in c.work.get("low_over_bar", []))
+    print(f"<!-- {c.reason}. Grown links' lowest error over the bar at each decision: {ratios} -->", flush=True)
 
 
 def main(argv=None):
@@ -37,46 +106,24 @@ def main(argv=None):
     ap.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
     ap.add_argument("--only", default="", help="comma-separated substrings of the set names")
     ap.add_argument("--verify", action="store_true", help="check each stop on grown links with whole fits")
+    ap.add_argument("--row", nargs=2, metavar=("SET", "POSES"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.row:
+        row(a.data, a.row[0], a.row[1], a.verify)
+        return
     only = [s for s in a.only.split(",") if s]
     print("| set | poses | true links | tree rule | whole fits up | links auto | off by | fixed fit (s) | links auto (s) "
-          "| × fixed | curve / up / drop (s) | stops |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|")
+          "| × fixed | curve / up / drop (s) | whole / partial fits / grown links | est. (s) | × est. | peak MB | est. MB | × est. "
+          "| stops |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---|", flush=True)
     for name in SETS:
         if only and not any(o in name for o in only):
             continue
-        path = os.path.join(a.data, f"{name}.npz")
-        if not os.path.exists(path):
+        if not os.path.exists(os.path.join(a.data, f"{name}.npz")):
             continue
-        with np.load(path, allow_pickle=False) as z:
-            d = {k: z[k] for k in z.files}
-        L = len(np.unique(d["gt_face_labels"]))
-        kinds = [("own", d["displacements"])]
-        if not name.startswith("cragl"):
-            kinds.append(("fresh", samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"],
-                                                        d["gt_parents"], 20, seed=1)))
-        for kind, u in kinds:
-            scan = S.Scan(d["vertices"], d["faces"], displacements=u)
-            t0 = time.perf_counter()
-            F.fit(scan, L, segmenter=F.Segmenter(scan))
-            fixed = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            seg = F.Segmenter(scan)
-            mx = max(30, int(1.5 * L))
-            c = linkcount.choose_links(seg, max_links=mx)
-            dt = time.perf_counter() - t0
-            stops = ", ".join(f"{k} {how}" for k, how in c.decisions if how != "continue")
-            if a.verify:
-                for k, how in c.decisions:
-                    if how == "grown":
-                        j = min(mx, k + 4)
-                        bar = min(v for q, v in c.whole_errors.items() if q <= k) * (k / j) ** linkcount.WHOLE_FIT_SLOPE
-                        low = min(float(F.fit(scan, i, segmenter=seg).articulation_error_percent) for i in range(k + 1, j + 1))
-                        stops += " (whole fits agree)" if low >= bar else f" (WHOLE FITS DISAGREE: {low:.4g} < {bar:.4g})"
-            parts = " / ".join(f"{c.timings.get(p, 0.0):.1f}" for p in ("curve", "upward", "drop"))
-            print(f"| {name} | {kind} | {L} | {c.tree_links} | {c.upward_links} | {c.links} | {100 * (c.links - L) / L:+.0f} % "
-                  f"| {fixed:.1f} | {dt:.1f} | {dt / fixed:.1f} | {parts} | {stops} |", flush=True)
-            print(f"<!-- {c.reason} -->", flush=True)
+        for kind in ("own",) if name.startswith("cragl") else ("own", "fresh"):
+            subprocess.run([sys.executable, os.path.abspath(__file__), "--data", a.data, "--row", name, kind]
+                           + (["--verify"] if a.verify else []), check=False)
 
 
 if __name__ == "__main__":
