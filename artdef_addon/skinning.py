@@ -321,10 +321,9 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
     instead of a 0/0 weight row.
     """
     N, L = incidence.shape
-    f = faces
-    a = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
-    A = ((A + A.T) > 0).astype(np.float64)
+    from .metric import digest
+    mesh = digest(vertices, faces)
+    A, E = _mesh_graph(mesh, vertices, faces)
     cand = incidence.astype(np.float64)
     for _ in range(max(rings - 1, 0)):
         cand = np.minimum(cand + A @ cand, 1.0)
@@ -332,21 +331,14 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
     if radius is not None:
         from scipy.sparse.csgraph import dijkstra
         limit = radius * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-        from .metric import digest
-        mesh = digest(vertices, faces, np.float64(limit))
-        E = None
         for l in range(L):
             src = np.flatnonzero(incidence[:, l])
             if src.size == 0 or limit <= 0:
                 continue
-            key = (mesh, digest(src))
+            key = (mesh, np.float64(limit).tobytes(), digest(src))
             with _REACH_LOCK:
                 reach = _REACH.get(key)
             if reach is None:
-                if E is None:
-                    length = np.linalg.norm(vertices[a[:, 0]] - vertices[a[:, 1]], axis=1)
-                    E = coo_matrix((length + 1e-300, (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
-                    E = E.maximum(E.T)
                 reach = np.flatnonzero(np.isfinite(dijkstra(E, directed=False, indices=src, min_only=True,
                                                             limit=limit)))
                 with _REACH_LOCK:       # split trials run on two threads (splits.THREADS)
@@ -356,6 +348,33 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
             cand[reach, l] = True
     cand[~cand.any(axis=1)] = True
     return cand
+
+
+def _mesh_graph(key: bytes, vertices: np.ndarray, faces: np.ndarray):
+    """The mesh's edge graph, remembered per mesh ``key`` (a fit asks for it in every decomposition):
+    ``A`` (N, N) CSR, 1 where two vertices share an edge, and ``E`` the same edges weighted by their
+    length (for :func:`scipy.sparse.csgraph.dijkstra`)."""
+    with _REACH_LOCK:
+        hit = _GRAPHS.get(key)
+    if hit is not None:
+        return hit
+    N = vertices.shape[0]
+    f = faces
+    a = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)
+    length = np.linalg.norm(vertices[a[:, 0]] - vertices[a[:, 1]], axis=1)
+    E = coo_matrix((length + 1e-300, (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
+    E = E.maximum(E.T)
+    with _REACH_LOCK:
+        _GRAPHS[key] = (A, E)
+        while len(_GRAPHS) > 4:
+            _GRAPHS.pop(next(iter(_GRAPHS)))
+    return A, E
+
+
+#: meshes' edge graphs remembered by :func:`_mesh_graph` (a few: one scan's fits use one)
+_GRAPHS: dict = {}
 
 
 #: links' geodesic reach remembered by :func:`candidate_links` (a fit's decompositions ask for the
@@ -379,7 +398,9 @@ def link_incidence(n_vertices: int, faces: np.ndarray, labels: np.ndarray, L: in
 def _candidates(vertices, faces, labels, L, rings, radius, ground):
     """(N, L) candidate links of every vertex (see :func:`candidate_links`); L counts the ground."""
     N = vertices.shape[0]
-    inc = link_incidence(N, faces, labels, L).toarray() > 0
+    ok = labels >= 0
+    inc = np.zeros((N, L), dtype=bool)                    # link_incidence, dense
+    inc[faces[ok].reshape(-1), np.repeat(labels[ok], 3)] = True
     if ground is not None:
         inc[:, L - 1] = ground
     return candidate_links(vertices, faces, inc, rings=rings, radius=radius)
