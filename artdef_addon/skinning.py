@@ -408,6 +408,8 @@ def _candidates(vertices, faces, labels, L, rings, radius, ground):
 
 #: vertices per block of the refined skin's weight solve (bounded memory at scale)
 SOLVE_BLOCK = 32768
+#: weight solves of at least this many vertices run in halves on two threads (the full-mesh skins)
+THREAD_ROWS = 4096
 
 #: a vertex's candidate links: the ones whose own motion explains it best, among which its (at most
 #: max_influences) skin links are chosen (see :func:`refined_weights`)
@@ -468,20 +470,37 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     wc = np.zeros((N, m))
     block = N if details else SOLVE_BLOCK
     Q = _pair_quadratic(xh, G, cols) if details else None
-    total = 0.0
-    for s in range(0, N, block):
-        e = min(N, s + block)
+    row_err = np.empty(N)
+
+    def solve(se):
+        """The weights of rows s:e (independent of every other row)."""
+        s, e = se
         Qb = Q[s:e] if details else _pair_quadratic(xh[s:e], G, cols[s:e])
         wb = simplex_least_squares(Qb, q[s:e], valid[s:e], max_support=max_influences,
                                    w0=None if w0 is None else w0[s:e], convex=free_out is not None)
+        wf = None
         if free_out is not None:
             wb, wf = wb
-            free.append(wf)
         wb[wb < 1e-6] = 0.0
         wb /= wb.sum(axis=1, keepdims=True)
         wc[s:e] = wb
-        total += float(np.sum(np.einsum("na,nab,nb->n", wb, Qb, wb) - 2 * np.einsum("na,na->n", q[s:e], wb)
-                              + xx[s:e]))
+        row_err[s:e] = np.einsum("na,nab,nb->n", wb, Qb, wb) - 2 * np.einsum("na,na->n", q[s:e], wb) + xx[s:e]
+        return wf
+
+    # big solves in halves on two threads (the rows are independent: the same weights and error)
+    threads = 2 if not details and N >= THREAD_ROWS else 1
+    part = block if threads == 1 else min(block, -(-N // threads))
+    parts = [(s, min(N, s + part)) for s in range(0, N, part)]
+    if threads > 1:
+        from .metric import worker_count
+        threads = min(threads, worker_count())
+    with stepping(threads, len(parts)) as each:
+        found = {}
+        each(lambda se: found.__setitem__(se, solve(se)), parts)
+    free = [found[se] for se in parts] if free_out is not None else []
+    total = 0.0
+    for s in range(0, N, block):
+        total += float(np.sum(row_err[s:min(N, s + block)]))
     np.put_along_axis(out, cols, wc, axis=1)
     if free_out is not None:
         wf = np.zeros((N, L))

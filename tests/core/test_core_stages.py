@@ -406,3 +406,27 @@ def test_residual_blocks_reproduce_every_field_exactly():
     for p in range(scan.n_fields):
         back = model.skin(a.weights, Rf[p], tf[p], x0 + a.residual[p])
         assert np.allclose(back, x0 + scan.displacements[p], atol=1e-9)
+
+
+def test_big_weight_solves_on_two_threads_give_the_same_skin():
+    """skinning._refine solves at least THREAD_ROWS rows in halves on two threads: each row's weights
+    depend on its own normal equations only, so the weights and the convex optimum handed to the next
+    round are those of one solve, and the error is to round-off (the rows' sums vectorise differently)."""
+    from artdef_addon import skinning
+    scan, truth = samples.make_with_truth("rod", n_fields=8, blend=2.0, seed=3)
+    x0, f, u = scan.vertices, scan.faces, scan.displacements
+    lab = truth["face_labels"]
+    R, t = joints.lsq_motions(x0, u, f, lab, 3)
+    res = {}
+    old = skinning.THREAD_ROWS
+    try:
+        for rows in (10 ** 9, 8):
+            skinning.THREAD_ROWS = rows
+            free = {}
+            w, e = skinning._refine(x0, u, f, lab, R, t, free_out=free)
+            res[rows] = (w, e, free["w"])
+    finally:
+        skinning.THREAD_ROWS = old
+    (w1, e1, f1), (w2, e2, f2) = res[10 ** 9], res[8]
+    assert np.array_equal(w1, w2) and np.array_equal(f1, f2) and abs(e1 - e2) <= 1e-12 * e1
+    assert np.allclose(w1.sum(axis=1), 1.0) and (np.count_nonzero(w1, axis=1) <= 4).all()
