@@ -835,7 +835,7 @@ def stage_residuals(st: FitState) -> None:
         c = slice(s, min(P, s + step))
         n = c.stop - c.start
         x1 = x0[None] + fields[c]                                                   # (n, N, 3)
-        B = np.matmul(weights, st.Rf[c].reshape(n, L, 9)).reshape(n, N, 3, 3)        # Σ_l w_l R_l
+        B = _model.blended_linear(weights, st.Rf[c])                                  # Σ_l w_l R_l
         T = np.matmul(weights, st.tf[c])                                              # Σ_l w_l t_l
         art = np.einsum("pnij,nj->pni", B, x0) + T
         res = _model.blended_residual(B, x1 - art)

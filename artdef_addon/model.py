@@ -124,15 +124,10 @@ def skin_links(weights) -> list:
 
 
 def blended_linear(weights, R) -> np.ndarray:
-    """Σ_l w_l R_l per vertex, (N,3,3)."""
-    return np.einsum("nl,lij->nij", weights, R)
-
-
-def rest_space_residual(weights, R, t, x0, x1, art=None) -> np.ndarray:
-    """δ (N, 3) with Σ_l w_l G_l (x0 + δ) = x1 exactly (METHOD §8 residual basis, in rest space).
-    ``art``: :func:`skin` of ``x0`` when the caller has it already."""
-    art = skin(weights, R, t, x0) if art is None else art
-    return blended_residual(blended_linear(weights, R), x1 - art)
+    """Σ_l w_l R_l per vertex: ``weights`` (N, L), ``R`` (..., L, 3, 3) (one pose or a block of them)
+    → (..., N, 3, 3), one matrix product."""
+    N, L = weights.shape
+    return np.matmul(weights, R.reshape(R.shape[:-3] + (L, 9))).reshape(R.shape[:-3] + (N, 3, 3))
 
 
 def blended_residual(B, rhs) -> np.ndarray:

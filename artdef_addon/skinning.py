@@ -336,12 +336,12 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
             if src.size == 0 or limit <= 0:
                 continue
             key = (mesh, np.float64(limit).tobytes(), digest(src))
-            with _REACH_LOCK:
+            with _CACHE_LOCK:
                 reach = _REACH.get(key)
             if reach is None:
                 reach = np.flatnonzero(np.isfinite(dijkstra(E, directed=False, indices=src, min_only=True,
                                                             limit=limit)))
-                with _REACH_LOCK:       # split trials run on two threads (splits.THREADS)
+                with _CACHE_LOCK:
                     _REACH[key] = reach
                     while len(_REACH) > REACH_CACHE:
                         _REACH.pop(next(iter(_REACH)))
@@ -354,7 +354,7 @@ def _mesh_graph(key: bytes, vertices: np.ndarray, faces: np.ndarray):
     """The mesh's edge graph, remembered per mesh ``key`` (a fit asks for it in every decomposition):
     ``A`` (N, N) CSR, 1 where two vertices share an edge, and ``E`` the same edges weighted by their
     length (for :func:`scipy.sparse.csgraph.dijkstra`)."""
-    with _REACH_LOCK:
+    with _CACHE_LOCK:
         hit = _GRAPHS.get(key)
     if hit is not None:
         return hit
@@ -366,7 +366,7 @@ def _mesh_graph(key: bytes, vertices: np.ndarray, faces: np.ndarray):
     length = np.linalg.norm(vertices[a[:, 0]] - vertices[a[:, 1]], axis=1)
     E = coo_matrix((length + 1e-300, (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
     E = E.maximum(E.T)
-    with _REACH_LOCK:
+    with _CACHE_LOCK:
         _GRAPHS[key] = (A, E)
         while len(_GRAPHS) > 4:
             _GRAPHS.pop(next(iter(_GRAPHS)))
@@ -381,14 +381,18 @@ _GRAPHS: dict = {}
 #: same links again and again: a swap or a relabelling changes a few links' vertices at a time)
 REACH_CACHE = 512
 _REACH: dict = {}
-_REACH_LOCK = threading.Lock()
+_CACHE_LOCK = threading.Lock()        # guards _REACH and _GRAPHS (trials run on two threads)
 
 
-def link_incidence(n_vertices: int, faces: np.ndarray, labels: np.ndarray, L: int):
+def link_incidence(n_vertices: int, faces: np.ndarray, labels: np.ndarray, L: int, dense: bool = False):
     """Sparse (N, L) 0/1 matrix (CSC): vertex v touches a triangle of link l. Faces labelled −1
-    count for no link."""
+    count for no link. With ``dense`` an (N, L) bool array instead."""
     ok = labels >= 0
     rows = faces[ok].reshape(-1)
+    if dense:
+        inc = np.zeros((n_vertices, L), dtype=bool)
+        inc[rows, np.repeat(labels[ok], 3)] = True
+        return inc
     inc = coo_matrix((np.ones(rows.size), (rows, np.repeat(labels[ok], 3))), shape=(n_vertices, L)).tocsc()
     inc.sum_duplicates()
     inc.data[:] = 1.0
@@ -398,9 +402,7 @@ def link_incidence(n_vertices: int, faces: np.ndarray, labels: np.ndarray, L: in
 def _candidates(vertices, faces, labels, L, rings, radius, ground):
     """(N, L) candidate links of every vertex (see :func:`candidate_links`); L counts the ground."""
     N = vertices.shape[0]
-    ok = labels >= 0
-    inc = np.zeros((N, L), dtype=bool)                    # link_incidence, dense
-    inc[faces[ok].reshape(-1), np.repeat(labels[ok], 3)] = True
+    inc = link_incidence(N, faces, labels, L, dense=True)
     if ground is not None:
         inc[:, L - 1] = ground
     return candidate_links(vertices, faces, inc, rings=rings, radius=radius)
@@ -465,7 +467,6 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     q = np.take_along_axis(q_all, cols, axis=1)
     start = w_init if w_free is None else w_free
     w0 = None if start is None else np.take_along_axis(start, cols, axis=1) * valid
-    free = []                       # the blocks' convex optima (free_out)
     out = np.zeros((N, L))
     wc = np.zeros((N, m))
     block = N if details else SOLVE_BLOCK
@@ -487,24 +488,20 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
         row_err[s:e] = np.einsum("na,nab,nb->n", wb, Qb, wb) - 2 * np.einsum("na,na->n", q[s:e], wb) + xx[s:e]
         return wf
 
-    # big solves in halves on two threads (the rows are independent: the same weights and error)
+    # big solves in halves on two threads (the rows are independent: the same weights, the error to round-off)
     threads = 2 if not details and N >= THREAD_ROWS else 1
-    part = block if threads == 1 else min(block, -(-N // threads))
+    part = min(block, -(-N // threads))
     parts = [(s, min(N, s + part)) for s in range(0, N, part)]
-    if threads > 1:
-        from .metric import worker_count
-        threads = min(threads, worker_count())
+    found = {}
     with stepping(threads, len(parts)) as each:
-        found = {}
         each(lambda se: found.__setitem__(se, solve(se)), parts)
-    free = [found[se] for se in parts] if free_out is not None else []
     total = 0.0
     for s in range(0, N, block):
         total += float(np.sum(row_err[s:min(N, s + block)]))
     np.put_along_axis(out, cols, wc, axis=1)
     if free_out is not None:
         wf = np.zeros((N, L))
-        np.put_along_axis(wf, cols, np.concatenate(free), axis=1)
+        np.put_along_axis(wf, cols, np.concatenate([found[se] for se in parts]), axis=1)
         free_out["w"] = wf
     if details:
         return out, max(total, 0.0), {"cols": cols, "valid": valid, "Q": Q, "q": q, "xx": xx, "wc": wc, "err": err}
@@ -651,6 +648,8 @@ def stepping(threads: int, n: int):
     """A function ``each(fn, items)`` that calls ``fn`` on every item: on ``threads`` threads where
     ``threads`` and the ``n`` runs stepped are above one (numpy releases the GIL in most of a
     decomposition round), else in turn. The threads end with the ``with`` block."""
+    from .metric import worker_count
+    threads = min(threads, worker_count())          # at most one per core the process may use
     pool = ThreadPoolExecutor(threads) if threads > 1 and n > 1 else None
 
     def each(fn, items):

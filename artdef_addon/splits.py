@@ -36,7 +36,6 @@ import numpy as np
 
 from .joints import lsq_motions
 from .merge import dominant_faces
-from .metric import worker_count
 from .quality import vertex_spread
 from .skinning import stepping
 from .swaps import reassign_faces
@@ -85,7 +84,7 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
                  keep: int | None = None, threads: int | None = None) -> None:
     """Run the :class:`skinning.Alternation` ``runs`` (one round's split trials) to their end in
     lockstep: all start, then every unfinished one steps a round at a time, on ``threads`` threads
-    (default :data:`THREADS`, at most one per core: :func:`metric.worker_count`). After
+    (default :data:`THREADS`; at most one per core, :func:`skinning.stepping`). After
     ``behind_round`` rounds (default :data:`BEHIND_ROUND`) a run whose error is above ``behind``
     (default :data:`BEHIND`) times the lowest error of the runs, or above the ``keep``-th lowest
     (default :data:`KEEP`), is stopped: on the rigged models (18 fits of RobotExpressive's and
@@ -96,7 +95,7 @@ def run_lockstep(runs, behind_round: int | None = None, behind: float | None = N
     behind_round = BEHIND_ROUND if behind_round is None else behind_round
     behind = BEHIND if behind is None else behind
     keep = KEEP if keep is None else keep
-    threads = min(THREADS, worker_count()) if threads is None else threads
+    threads = THREADS if threads is None else threads
     if not runs:
         return
     with stepping(threads, len(runs)) as each:
