@@ -69,7 +69,7 @@ from . import cost as _cost
 from . import skinning
 from .blas import single_threaded
 from .merge import dominant_faces
-from .model import skin, skin_links
+from .model import skin_errors
 from .quality import frame_spread
 
 
@@ -191,8 +191,7 @@ def curve_error(seg, k: int) -> float:
     if ground is not None:  # the fixed world is one more "link" with the identity motion
         R = np.concatenate([R, np.tile(np.eye(3), (len(used), 1, 1, 1))], axis=1)
         t = np.concatenate([t, np.zeros((len(used), 1, 3))], axis=1)
-    moved = skin_links(w)            # what each link moves, found once for every field
-    err = sum(np.sum((skin(w, R[i], t[i], scan.vertices, moved) - X[i]) ** 2) for i in range(len(used)))
+    err = float(skin_errors(w, R, t, scan.vertices, fields).sum())
     return 100.0 * np.sqrt(err) / den if den > 0 else 0.0
 
 
@@ -211,13 +210,19 @@ def descending_curve(seg, max_links: int, tau: float = 0.15, progress=None) -> n
     for k in range(max_links, 1, -1):
         search.step(_cost.CURVE_FITS_PER_COUNT)
         out[k - 1] = curve_error(seg, k)
-        floor = max(float(np.nanmin(out)), 1e-3)
-        top = max(float(out[0]), floor)
+        floor, top = _floor_top(out)
         bar = floor * (top / floor) ** tau
         if k < max_links and out[k - 1] > bar and out[k] > bar:
             break
     search.step(_cost.CURVE_FITS_PER_COUNT)
     return out
+
+
+def _floor_top(e: np.ndarray) -> tuple:
+    """The tree curve's floor e_floor = min_k e(k) (at least 1e-3 %) and top e(1) (at least the
+    floor), over the counts computed (NaN elsewhere): the ends of the tau rule's log scale."""
+    floor = max(float(np.nanmin(e)), 1e-3)
+    return floor, max(float(e[0]), floor)
 
 
 @contextlib.contextmanager
@@ -312,8 +317,7 @@ def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> Lin
     with single_threaded():      # thousands of small distance products (see :mod:`blas`)
         e = descending_curve(seg, max_links, tau, progress=search)
     timings = {"curve": time.perf_counter() - t0}
-    floor = max(float(np.nanmin(e)), 1e-3)
-    top = max(float(e[0]), floor)
+    floor, top = _floor_top(e)
     if top <= floor * 1.0001:
         k = 1
         why = f"one rigid motion explains every field (error {e[0]:.3g}%)"
@@ -458,12 +462,8 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
     Returns ``(labels (T,), w (N, L+1), R (P, L+1, 3, 3), t (P, L+1, 3), error %)``.
     """
     from .joints import lsq_motions
-    P, L = R.shape[0], R.shape[1]
-    err_v = np.zeros(x0.shape[0])
-    for p in range(P):
-        d = skin(w, R[p], t[p], x0) - (x0 + fields[p])
-        err_v += np.einsum("ni,ni->n", d, d)
-    face_err = err_v[faces].sum(axis=1)
+    L = R.shape[1]
+    face_err = skin_errors(w, R, t, x0, fields)[faces].sum(axis=1)
     order = units[np.argsort(-face_err[units], kind="stable")]
     unit_count = np.bincount(labels[units], minlength=L)
     new = None
@@ -648,9 +648,7 @@ def partial_fit(seg, k: int, progress=None):
     st = FitState(scan=scan, seg=seg, links=k, motion="robust", skin="refined", field_idx=list(range(scan.n_fields)))
     with single_threaded():
         secs = run_stages(st, progress, STAGES[:n])
-    moved = skin_links(st.weights)
-    err = sum(np.sum((skin(st.weights, st.Rs[p], st.ts[p], x0, moved) - x0 - fields[p]) ** 2)
-              for p in range(len(fields)))
+    err = float(skin_errors(st.weights, st.Rs, st.ts, x0, fields).sum())
     spread = frame_spread(x0, fields)
     return st, secs, (100.0 * np.sqrt(err / spread) if spread > 0 else 0.0)
 

@@ -123,6 +123,17 @@ def skin_links(weights) -> list:
     return out
 
 
+def skin_errors(weights, R, t, x0, fields) -> np.ndarray:
+    """Σ_p ‖skin(weights, R_p, t_p, x0) − (x0 + u_p)‖² per vertex, (N,): how far the skin with the
+    motions ``R (P, L, 3, 3)``, ``t (P, L, 3)`` stays from the fields ``fields (P, N, 3)``."""
+    moved = skin_links(weights)            # what each link moves, found once for every field
+    err = np.zeros(x0.shape[0])
+    for p in range(fields.shape[0]):
+        d = skin(weights, R[p], t[p], x0, moved) - (x0 + fields[p])
+        err += np.einsum("ni,ni->n", d, d)
+    return err
+
+
 def blended_linear(weights, R) -> np.ndarray:
     """Σ_l w_l R_l per vertex: ``weights`` (N, L), ``R`` (..., L, 3, 3) (one pose or a block of them)
     → (..., N, 3, 3), one matrix product."""
