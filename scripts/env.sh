@@ -45,6 +45,26 @@ find_python() {  # prints a path to a working python$WANT_PY
   return 1
 }
 
+STAMP="$VENV/.artdef-$WHAT.sha256"
+WANT="$(cat "${REQS[@]}" | sha256sum | cut -d' ' -f1)"
+
+free_mb() {  # free_mb DIR : megabytes free on DIR's file system
+  df -Pk "$1" 2>/dev/null | awk 'NR == 2 { print int($4 / 1024) }'
+}
+
+# An install (bpy is a ~400 MB wheel that unpacks to ~1.2 GB) on a full disk fails half-way in
+# pip; say so up front, before anything is created.
+if ! { [ -x "$PY" ] && is_python "$PY" && [ "$(cat "$STAMP" 2>/dev/null || true)" = "$WANT" ]; }; then
+  NEED_MB="${ARTDEF_ENV_NEED_MB:-2048}"
+  for DIR in "$ROOT" "${TMPDIR:-/tmp}"; do
+    HAVE_MB="$(free_mb "$DIR")"
+    if [ -n "$HAVE_MB" ] && [ "$HAVE_MB" -lt "$NEED_MB" ]; then
+      echo "env: only $HAVE_MB MB free on the disk of $DIR; setting up ${VENV#$ROOT/} needs about $NEED_MB MB: free some space and run again" >&2
+      exit 1
+    fi
+  done
+fi
+
 if [ -x "$PY" ] && is_python "$PY"; then
   echo "env: reusing ${VENV#$ROOT/} ($("$PY" --version))"
 else
@@ -58,8 +78,6 @@ else
     echo "env: '$BASE -m venv' failed; on Debian: apt-get install python$WANT_PY-venv" >&2; exit 1; }
 fi
 
-STAMP="$VENV/.artdef-$WHAT.sha256"
-WANT="$(cat "${REQS[@]}" | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$WANT" ]; then
   echo "env: installing ${REQS[*]} into ${VENV#$ROOT/}"
   "$PY" -m pip install --disable-pip-version-check -q -r "${REQS[-1]}"

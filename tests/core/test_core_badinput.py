@@ -442,3 +442,23 @@ def test_mixed_obj_ply_sequence_is_refused(tmp_path):
         seq.find_sequence(str(tmp_path))
     (tmp_path / "pose_002.ply").unlink()
     assert len(seq.find_sequence(str(tmp_path / "pose_000.obj"))) == 2
+
+
+def test_setup_on_a_full_disk_says_so_before_creating_anything(tmp_path):
+    """scripts/env.sh (the README's commands' set-up) checks the free space before it creates or
+    fills a virtual environment: one line naming the disk and the space, exit 1, nothing created
+    (pip would otherwise stop half-way with 'No space left on device')."""
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    (tmp_path / "scripts").mkdir()
+    for name in ("requirements.txt", "requirements-dev.txt", "requirements-4.5.txt"):
+        (tmp_path / name).write_bytes(open(os.path.join(root, name), "rb").read())
+    (tmp_path / "scripts" / "env.sh").write_bytes(open(os.path.join(root, "scripts", "env.sh"), "rb").read())
+    before = sorted(os.listdir(tmp_path))
+    env = dict(os.environ, ARTDEF_ENV_NEED_MB=str(2 ** 40))
+    for what in ("dev", "4.5"):
+        run = subprocess.run(["bash", str(tmp_path / "scripts" / "env.sh"), what], env=env,
+                             capture_output=True, text=True, timeout=60)
+        assert run.returncode == 1
+        lines = run.stderr.strip().splitlines()
+        assert len(lines) == 1 and "MB free on the disk of" in lines[0] and "free some space" in lines[0]
+        assert sorted(os.listdir(tmp_path)) == before
