@@ -21,6 +21,7 @@ and what ε (Eq. 5) needs; per field the average-linkage tree, §5.2). :func:`fi
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import time
@@ -195,6 +196,7 @@ class Segmenter:
         # each unclustered field's nearest clustered field (link_motions), by the fields' ids
         self.nearest_field = {}
         self._segmentations = 0
+        self._remembered = None      # (k, fields) -> segment()'s answer, inside remembering()
         self.notes = []
         T = scan.n_faces
         bad = np.zeros(T, dtype=bool)
@@ -344,12 +346,40 @@ class Segmenter:
             raise ScanError(f"more links requested ({k}) than patches of the reduced method "
                             f"({len(self.unit_tri)}); raise the memory budget")
 
+    @contextlib.contextmanager
+    def remembering(self):
+        """Within the block, :meth:`segment` computes each ``(k, fields)`` once (a link-count
+        search segments every count up to Max Links for its curve, and its whole fits ask for the
+        same counts again: the merge, the links' medoids and the seam refinement, about a tenth of a
+        fit each). A segmentation does not depend on what was segmented before, so the answers are
+        the same; every caller gets its own copies. Nested blocks share the outer one's memory."""
+        if self._remembered is not None:
+            yield self
+            return
+        self._remembered = {}
+        try:
+            yield self
+        finally:
+            self._remembered = None
+
     def segment(self, k: int, fields=None):
         """Links over ``fields`` (default all): ``(labels (Tv,), medoids (k, P_sel), fields)``.
 
         One level over all fields for tracked scans; for a Green's scan two levels: each block
         column's three fields, then the union of their seams merged over all fields (A-9).
+        Inside :meth:`remembering`, each ``(k, fields)`` is computed once.
         """
+        memo = self._remembered
+        if memo is None:
+            return self._segment(k, fields)
+        key = (int(k), None if fields is None else tuple(int(p) for p in fields))
+        if key not in memo:
+            memo[key] = self._segment(k, fields)
+        lab, med, used = memo[key]
+        return lab.copy(), med.copy(), list(used)
+
+    def _segment(self, k: int, fields=None):
+        """:meth:`segment` without the memory."""
         self._check_k(k)
         self._segmentations += 1
         groups = self.groups if fields is None else [list(fields)]

@@ -59,7 +59,6 @@ rigged and CraGL sets): ``benchmarks/results/core_constants.md``; the method: do
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
 
@@ -225,33 +224,6 @@ def _floor_top(e: np.ndarray) -> tuple:
     return floor, max(float(e[0]), floor)
 
 
-@contextlib.contextmanager
-def remembered_segments(seg):
-    """Within the block, ``seg.segment(k, fields)`` computes each (k, fields) once: the tree curve
-    segments every count up to Max Links, and the whole fits of the upward pass and the drop ask for
-    the same counts again (the merge, the links' medoids and the seam refinement, about a tenth of
-    a fit each). The segmentation of a count does not depend on what was segmented before, so the
-    answers are the same; each caller gets its own copies."""
-    if "segment" in vars(seg):            # already remembered by an outer block
-        yield seg
-        return
-    plain = seg.segment
-    memo = {}
-
-    def segment(k, fields=None):
-        key = (int(k), None if fields is None else tuple(int(p) for p in fields))
-        if key not in memo:
-            memo[key] = plain(k, fields)
-        lab, med, used = memo[key]
-        return lab.copy(), med.copy(), list(used)
-
-    seg.segment = segment
-    try:
-        yield seg
-    finally:
-        del seg.segment
-
-
 #: log-log slope below which the whole fits' error counts as levelled off (see module docstring)
 WHOLE_FIT_SLOPE = 2.0
 #: the upward search continues on grown links (:func:`_grown_upward`) when their errors fall below
@@ -307,7 +279,7 @@ def choose_links(seg, max_links: int = 30, tau: float = 0.15, progress=None, slo
         whole_fits = scan.kind != "greens" and scan.support_vertices is None
     search = progress if isinstance(progress, SearchProgress) else SearchProgress(
         progress, _cost.CURVE_FITS_PER_COUNT * max_links + (1.0 + window * _cost.GROW_FITS if whole_fits else 0.0))
-    with remembered_segments(seg):
+    with seg.remembering():
         return _choose_links(seg, max_links, tau, search, slope, window, whole_fits)
 
 
