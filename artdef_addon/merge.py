@@ -179,6 +179,10 @@ def _lambda(D: np.ndarray, size: np.ndarray) -> np.ndarray:
     return lam
 
 
+#: residual entries :func:`refine_seams` takes at once (32 MB of float64)
+SEAM_BLOCK = 4_000_000
+
+
 def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.ndarray, t: np.ndarray,
                  weights: np.ndarray, labels: np.ndarray, adjacency: np.ndarray,
                  iterations: int = 10, margin: float = 1.0 + 1e-9, fixed=None) -> np.ndarray:
@@ -199,12 +203,16 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
     k = R.shape[1]
     T = labels.shape[0]
     E = np.zeros((k, x0.shape[0]))
+    links = max(1, SEAM_BLOCK // max(3 * x0.shape[0], 1))     # links whose residuals are taken at once
     for p in range(fields.shape[0]):
         if weights[p]:
             X = x0 + fields[p]
-            for l in range(k):
-                d = x0 @ R[p, l].T + t[p, l] - X
-                E[l] += weights[p] * np.sqrt(np.einsum("ni,ni->n", d, d))
+            for l0 in range(0, k, links):
+                # (links, N, 3) residuals of field p
+                d = np.matmul(x0, np.swapaxes(R[p, l0:l0 + links], -1, -2))
+                d += t[p, l0:l0 + links, None, :]
+                d -= X
+                E[l0:l0 + links] += weights[p] * np.sqrt(np.einsum("lni,lni->ln", d, d))
     scale = E.max() if E.size else 1.0
     inv = 1.0 / (E + 1e-12 * max(scale, 1e-300))
     a, b = adjacency[:, 0], adjacency[:, 1]
