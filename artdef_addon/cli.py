@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from . import wording
 from .options import LINKS, FitOptions, OptionError, OptionsError
 
 
@@ -351,7 +352,8 @@ def _cmd_fit(a) -> int:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
         if result.link_reason:
-            print(result.link_reason)
+            plain = wording.plain_link_reason(result.n_links, result.link_errors, result.articulation_error_percent)
+            print(plain + "\n" + result.link_reason if plain else result.link_reason)
         print(result.summary())
         if sc.kind == "greens":
             f = sc.fields()

@@ -5,8 +5,9 @@ import textwrap
 
 import bpy
 
+from ..artdef_addon import wording
 from ..artdef_addon.options import GB, FitOptions
-from ..operators import io, ops, rig, wording
+from ..operators import io, ops, rig
 from ..operators.props import SETTING_NAMES
 
 
@@ -119,10 +120,10 @@ class ARTDEF_PT_main(bpy.types.Panel):
                            + (f", {st.fit_skin} skin" if st.fit_skin else ""))
             if st.fit_link_reason:
                 errors = list(obj.get("artdef_link_errors", []))
-                plain = wording.plain_link_reason(st.fit_links, errors) or st.fit_link_reason
+                plain = wording.plain_link_reason(st.fit_links, errors, st.fit_articulation_percent) or st.fit_link_reason
                 for line in textwrap.wrap(plain, 44):
                     col.label(text=line)
-                curve = _subpanel(box, "ARTDEF_link_curve", "Error by link count")
+                curve = _subpanel(box, "ARTDEF_link_curve", "Quick error by link count")
                 if curve is not None:
                     for line in wording.error_curve_lines(errors, st.fit_links) or \
                             textwrap.wrap(st.fit_link_reason, 44):

@@ -588,7 +588,7 @@ def test_panel_shows_greens_settings_only_for_greens_and_the_rest_under_advanced
 
 
 def test_auto_links_reason_in_one_plain_sentence(clean_scene, installed_addon):
-    wording = importlib.import_module(installed_addon + ".operators.wording")
+    wording = importlib.import_module(installed_addon + ".artdef_addon.wording")
     obj, _arm = build_character(last_frame=21)
     assert bpy.ops.artdef.fields_from_animation(frame_start=1, frame_end=21,
                                                 frame_step=KEY_STEP) == {'FINISHED'}
@@ -603,6 +603,9 @@ def test_auto_links_reason_in_one_plain_sentence(clean_scene, installed_addon):
     assert sentence.startswith(f"{links} links leave ")
     labels = [e[1] for e in _draw(closed=True) if e[0] == "label"]
     assert "unexplained" in " ".join(labels)
+    # the sentence says the fit's own error, the one the panel reports below it (not the quick curve's)
+    fitted = scan_obj.artdef.fit_articulation_percent
+    assert f"{links} links leave {wording._percent(fitted)} of the motion unexplained" in " ".join(labels)
     assert ("panel", "ARTDEF_link_curve") in _draw(closed=True)
     curve = [e[1] for e in _draw(closed=False) if e[0] == "label" and "links  " in e[1]]
     assert len(curve) == len(errors) and curve[links - 1].endswith("<")

@@ -159,20 +159,19 @@ def test_descending_curve_reads_the_counts_the_rule_needs():
 
 def test_panel_words_for_a_curve_with_counts_the_search_skipped():
     """The counts the search did not read are NaN in the curve: the panel's curve shows a dash
-    there and its sentence reads the counts it has (operators/wording.py is plain Python)."""
-    import importlib.util
-    from pathlib import Path
-    path = Path(__file__).resolve().parents[2] / "operators" / "wording.py"
-    spec = importlib.util.spec_from_file_location("artdef_wording", path)
-    wording = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(wording)
+    there and its sentence reads the counts it has (the command line prints the same sentence)."""
+    from artdef_addon import wording
     nan = float("nan")
     errors = [50.0, nan, nan, 3.0, 2.0, 2.5]
     assert wording.error_curve_lines(errors, 4) == [" 1 links   50.00%", " 2 links       —", " 3 links       —",
                                                     " 4 links    3.00%  <", " 5 links    2.00%", " 6 links    2.50%"]
     assert wording.plain_link_reason(4, errors) == (
-        "4 links leave 3.0% of the motion unexplained (one bone leaves 50%); even 6 would only get it to 2.0%, "
+        "4 links leave 3% of the motion unexplained (one bone leaves 50%); even 6 would lower that by only 33%, "
         "so more bones would mostly add clutter.")
+    # the fit's own error is said where known (the curve's is a quick segmentation's); above 100 % "all of it"
+    assert wording.plain_link_reason(4, [104.8] + errors[1:], fitted=0.0261) == (
+        "4 links leave 0.026% of the motion unexplained (one bone leaves all of it); even 6 would lower that by "
+        "only 33%, so more bones would mostly add clutter.")
 
 
 def test_whole_fits_climb_to_the_true_link_count():
@@ -295,6 +294,7 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     assert cli.main(["fit", str(path), "--links", "auto", "--max-links", "16", "-o", str(tmp_path / "r.npz")]) == 0
     out = capsys.readouterr().out
     assert "links auto: chose 11" in out and "with the link-count search up to 16 links" in out   # priced
+    assert "11 links leave " in out and "% of the motion unexplained" in out    # the panel's plain sentence too
     shown = [int(l.split()[-1][:-1]) for l in out.splitlines() if l.startswith("choosing the link count: ")]
     assert shown[0] == 0 and shown[-1] == 100 and shown == sorted(set(shown))   # the search, in tenths
     assert F.load_result(tmp_path / "r.npz").n_links == 11
