@@ -52,10 +52,10 @@ free_mb() {  # free_mb DIR : megabytes free on DIR's file system
   df -Pk "$1" 2>/dev/null | awk 'NR == 2 { print int($4 / 1024) }'
 }
 
-# An install (bpy is a ~400 MB wheel that unpacks to ~1.2 GB) on a full disk fails half-way in
+# An install (bpy: a ~400 MB wheel that unpacks to ~1.1 GB; the venv ends at ~1.2 GB) on a full disk fails half-way in
 # pip; say so up front, before anything is created.
 if ! { [ -x "$PY" ] && is_python "$PY" && [ "$(cat "$STAMP" 2>/dev/null || true)" = "$WANT" ]; }; then
-  NEED_MB="${ARTDEF_ENV_NEED_MB:-2048}"
+  NEED_MB="${ARTDEF_ENV_NEED_MB:-1600}"
   for DIR in "$ROOT" "${TMPDIR:-/tmp}"; do
     HAVE_MB="$(free_mb "$DIR")"
     if [ -n "$HAVE_MB" ] && [ "$HAVE_MB" -lt "$NEED_MB" ]; then
