@@ -1,4 +1,3 @@
-# SPDX-License-Identifier: GPL-3.0-or-later
 """Plain words about a fit for people, shared by the panel and the command line (pure Python)."""
 
 
