@@ -405,17 +405,31 @@ def main(argv=None) -> int:
                      "set ARTDEF_TRACEBACK=1 for the traceback)", 1)
 
 
+def remove_blender_tempdir() -> None:
+    """Remove Blender's session folder (``bpy.app.tempdir``, ``<temp>/blender_XXXXXX/``) if ``bpy``
+    is loaded. Blender removes it in its C-level teardown, which :func:`exit_process` skips: without
+    this every run that loads bpy leaves one behind in the system's temporary folder. Only a folder
+    named ``blender_*`` is removed (the session's own, never a configured temporary folder)."""
+    bpy = sys.modules.get("bpy")
+    path = getattr(getattr(bpy, "app", None), "tempdir", "") if bpy is not None else ""
+    path = os.path.normpath(path) if path else ""
+    if os.path.basename(path).startswith("blender_") and os.path.isdir(path):
+        import shutil
+        shutil.rmtree(path, ignore_errors=True)
+
+
 def exit_process(code) -> None:
     """End the process with ``code``.  With ``bpy`` loaded: run the Python exit
-    handlers (the temporary extension repository's clean-up), flush, and
-    ``os._exit``, skipping the C-level teardown, because the bpy 4.5 module can
-    deadlock in its C++ static destructors at exit after a glTF import/export
-    (outputs written, then a futex wait forever; see operators/compat.py).
-    Only inspects ``sys.modules``: the core never imports bpy."""
+    handlers (the temporary extension repository's clean-up), remove Blender's session
+    folder (:func:`remove_blender_tempdir`), flush, and ``os._exit``, skipping the C-level
+    teardown, because the bpy 4.5 module can deadlock in its C++ static destructors at exit
+    after a glTF import/export (outputs written, then a futex wait forever; see
+    operators/compat.py). Only inspects ``sys.modules``: the core never imports bpy."""
     code = 0 if code is None else code
     if "bpy" not in sys.modules:
         sys.exit(code)
     atexit._run_exitfuncs()
+    remove_blender_tempdir()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code if isinstance(code, int) else 1)

@@ -214,7 +214,9 @@ def pytest_unconfigure(config):
     if sys.modules.get("bpy") is None:
         return
     import atexit
+    from artdef_addon.cli import remove_blender_tempdir
     atexit._run_exitfuncs()
+    remove_blender_tempdir()      # Blender's session folder: its teardown is skipped below
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(_EXIT_STATUS[0])

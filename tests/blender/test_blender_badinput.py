@@ -78,7 +78,10 @@ def test_degenerate_and_unreferenced_accepted_as_on_the_command_line(clean_scene
     "building the Blender outputs",     # while bpy starts, the add-on registers, the rig is built
     # (no fit runs in the Blender stage any more: the rig is built from the command's one fit)
 ])
-def test_ctrl_c_in_the_blender_stage(tmp_path, marker, interrupt_at):
+def test_ctrl_c_in_the_blender_stage(tmp_path, marker, interrupt_at, monkeypatch):
+    temp = tmp_path / "temp"            # the process's temporary folder: left empty
+    temp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(temp))
     scan = tmp_path / "br.npz"
     files.write_scan(scan, samples.make("branching"))
     out = tmp_path / "out.npz"
@@ -90,4 +93,5 @@ def test_ctrl_c_in_the_blender_stage(tmp_path, marker, interrupt_at):
     assert code == 130 and lines == ["artdef: error: interrupted; no file was written or changed"], err
     assert out.read_bytes() == b"earlier result"
     assert (tmp_path / "out.blend").read_bytes() == b"earlier blend"
-    assert sorted(os.listdir(tmp_path)) == ["br.npz", "out.blend", "out.npz"]
+    assert sorted(os.listdir(tmp_path)) == ["br.npz", "out.blend", "out.npz", "temp"]
+    assert os.listdir(temp) == []       # Blender's session folder and the add-on's repository removed

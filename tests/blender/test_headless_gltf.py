@@ -315,6 +315,21 @@ np.savez(sys.argv[2], weights=w, names=np.array(names))
 """
 
 
+def test_a_command_leaves_nothing_in_the_temporary_folder(rod_scan, tmp_path):
+    """The command exits without Blender's teardown (cli.exit_process), which would remove
+    Blender's session folder (<temp>/blender_XXXXXX/): it removes it itself, as it removes the
+    add-on's temporary repository. Each fit writing a .glb used to leave one behind."""
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    env = dict(os.environ, TMPDIR=str(temp), PYTHONPATH=str(REPO_ROOT))
+    proc = subprocess.run([sys.executable, "-m", "artdef_addon", "fit", str(rod_scan), "--links", str(LINKS),
+                           "--glb", str(tmp_path / "rod.glb")], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=600)
+    _ok(proc)
+    assert (tmp_path / "rod.glb").is_file()
+    assert os.listdir(temp) == []
+
+
 def test_blend_holds_the_fit_of_the_npz_with_every_option(rod_scan, tmp_path):
     """One fit per command: ``fit -o R --blend B`` builds the .blend's rig from the result it
     saved (every option allowed, ``--strategy`` too), so the vertex groups hold the .npz's skin
