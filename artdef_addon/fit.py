@@ -976,6 +976,22 @@ def _bones(x0, faces, labels, parents, joint, centroid, diag):
     return heads, tails, frames
 
 
+def _new_state(seg: Segmenter, links: int, motion: str, skin: str) -> FitState:
+    """The state a fit of ``links`` links over every field starts from."""
+    return FitState(scan=seg.scan, seg=seg, links=links, motion=motion, skin=skin,
+                    field_idx=list(range(seg.scan.n_fields)))
+
+
+def fit_until(seg: Segmenter, links: int, stage: str, progress=None):
+    """The stages of :func:`fit` (its defaults) before ``stage``: ``(state, seconds per stage)``,
+    which ``fit(seg.scan, links, segmenter=seg, resume=...)`` finishes into the same fit."""
+    skin = "seam" if seg.scan.kind == "greens" else "refined"
+    st = _new_state(seg, int(links), "robust", skin)
+    with single_threaded():
+        secs = run_stages(st, progress, STAGES[:[name for name, _ in STAGES].index(stage)])
+    return st, secs
+
+
 def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_max=None,
         progress=None, segmenter: Segmenter | None = None, strategy: str = "auto",
         skin: str = "auto", resume=None) -> FitResult:
@@ -1021,8 +1037,7 @@ def _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin, 
         state, done = resume
         stage_times = {**done, **run_stages(state, progress, STAGES[len(done):])}
     else:
-        state = FitState(scan=scan, seg=seg, links=links, motion=motion, skin=skin,
-                         field_idx=list(range(scan.n_fields)))
+        state = _new_state(seg, links, motion, skin)
         stage_times = run_stages(state, progress)
     result = _result(state, stage_times)
     result.skin = skin

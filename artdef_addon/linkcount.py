@@ -613,13 +613,10 @@ def partial_fit(seg, k: int, progress=None):
     the refined skin (weights with the skin's own motions), which the split stage only lowers
     (the whole fit's error is that of its final skin: ``fit.stage_residuals``).
     ``fit.fit(..., resume=(state, seconds))`` finishes the same fit."""
-    from .fit import STAGES, FitState, run_stages
+    from .fit import fit_until
     scan = seg.scan
     x0, fields = scan.vertices, scan.fields()
-    n = [name for name, _ in STAGES].index("split")
-    st = FitState(scan=scan, seg=seg, links=k, motion="robust", skin="refined", field_idx=list(range(scan.n_fields)))
-    with single_threaded():
-        secs = run_stages(st, progress, STAGES[:n])
+    st, secs = fit_until(seg, k, "split", progress)
     err = float(skin_errors(st.weights, st.Rs, st.ts, x0, fields).sum())
     spread = frame_spread(x0, fields)
     return st, secs, (100.0 * np.sqrt(err / spread) if spread > 0 else 0.0)
