@@ -336,15 +336,10 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
             if src.size == 0 or limit <= 0:
                 continue
             key = (mesh, np.float64(limit).tobytes(), digest(src))
-            with _CACHE_LOCK:
-                reach = _REACH.get(key)
+            reach = _REACH.get(key)
             if reach is None:
-                reach = np.flatnonzero(np.isfinite(dijkstra(E, directed=False, indices=src, min_only=True,
-                                                            limit=limit)))
-                with _CACHE_LOCK:
-                    _REACH[key] = reach
-                    while len(_REACH) > REACH_CACHE:
-                        _REACH.pop(next(iter(_REACH)))
+                reach = _REACH.put(key, np.flatnonzero(np.isfinite(
+                    dijkstra(E, directed=False, indices=src, min_only=True, limit=limit))))
             cand[reach, l] = True
     cand[~cand.any(axis=1)] = True
     return cand
@@ -354,8 +349,7 @@ def _mesh_graph(key: bytes, vertices: np.ndarray, faces: np.ndarray):
     """The mesh's edge graph, remembered per mesh ``key`` (a fit asks for it in every decomposition):
     ``A`` (N, N) CSR, 1 where two vertices share an edge, and ``E`` the same edges weighted by their
     length (for :func:`scipy.sparse.csgraph.dijkstra`)."""
-    with _CACHE_LOCK:
-        hit = _GRAPHS.get(key)
+    hit = _GRAPHS.get(key)
     if hit is not None:
         return hit
     N = vertices.shape[0]
@@ -366,22 +360,36 @@ def _mesh_graph(key: bytes, vertices: np.ndarray, faces: np.ndarray):
     length = np.linalg.norm(vertices[a[:, 0]] - vertices[a[:, 1]], axis=1)
     E = coo_matrix((length + 1e-300, (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
     E = E.maximum(E.T)
-    with _CACHE_LOCK:
-        _GRAPHS[key] = (A, E)
-        while len(_GRAPHS) > 4:
-            _GRAPHS.pop(next(iter(_GRAPHS)))
-    return A, E
+    return _GRAPHS.put(key, (A, E))
+
+
+class _Remembered:
+    """Values by key, the oldest forgotten beyond ``size``; safe to share between the threads the
+    trials of a round step on."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self._d: dict = {}
+        self._lock = threading.Lock()
+
+    def get(self, key):
+        with self._lock:
+            return self._d.get(key)
+
+    def put(self, key, value):
+        with self._lock:
+            self._d[key] = value
+            while len(self._d) > self.size:
+                self._d.pop(next(iter(self._d)))
+        return value
 
 
 #: meshes' edge graphs remembered by :func:`_mesh_graph` (a few: one scan's fits use one)
-_GRAPHS: dict = {}
-
-
+_GRAPHS = _Remembered(4)
 #: links' geodesic reach remembered by :func:`candidate_links` (a fit's decompositions ask for the
 #: same links again and again: a swap or a relabelling changes a few links' vertices at a time)
 REACH_CACHE = 512
-_REACH: dict = {}
-_CACHE_LOCK = threading.Lock()        # guards _REACH and _GRAPHS (trials run on two threads)
+_REACH = _Remembered(REACH_CACHE)
 
 
 def link_incidence(n_vertices: int, faces: np.ndarray, labels: np.ndarray, L: int, dense: bool = False):
