@@ -152,6 +152,16 @@ def supported_options(op, options):
     return {k: v for k, v in options.items() if k in names}
 
 
+def gltf_tracks_drop_armature_node():
+    """Whether the glTF exporter's NLA Tracks mode (one animation per clip) works
+    with ``export_armature_object_remove`` (no armature node, so the validator has
+    no NODE_SKINNED_MESH_NON_ROOT warning).  4.5.15 and 5.0.1 fail there
+    (``UnboundLocalError: 'animation'`` in ``anim_utils.bake_animation``: they
+    read the NLA tracks of armatures they do not export, e.g. the hidden
+    source's); 5.1.2, 5.2.3 and 5.3.0 export it."""
+    return bpy.app.version >= (5, 1, 0)
+
+
 def remove_fcurve(action, fcurve):
     """Remove ``fcurve`` from ``action``.  4.4+: from the channel bag holding it
     (5.0 has no ``Action.fcurves``); 4.2/4.3: ``Action.fcurves.remove``."""

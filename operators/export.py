@@ -172,10 +172,9 @@ def _gltf(path, fmt, clip_name, debug_attributes, step=1, clips=1):
         use_selection=True, use_visible=False, use_active_collection=False,
         export_yup=True, export_apply=False,
         export_skins=True, export_def_bones=True, export_rest_position_armature=True,
-        # validator: no NODE_SKINNED_MESH_NON_ROOT.  Not with several clips: then
-        # Blender's NLA Tracks mode (5.0) also reads the tracks of armatures it does
-        # not export (e.g. the hidden source's) and fails on them.
-        export_armature_object_remove=clips == 1,
+        # validator: no NODE_SKINNED_MESH_NON_ROOT.  With several clips only where
+        # the NLA Tracks mode allows it (5.1 on; compat.gltf_tracks_drop_armature_node)
+        export_armature_object_remove=clips == 1 or compat.gltf_tracks_drop_armature_node(),
         export_influence_nb=4, export_all_influences=False,
         export_morph=True, export_morph_normal=True, export_morph_animation=True,
         export_animations=True, export_force_sampling=True, export_frame_range=False,
