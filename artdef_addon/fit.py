@@ -543,6 +543,9 @@ class FitState:
     rms_articulation: float = 0.0
     rms_total: float = 0.0
     fidelity: object = None                   # quality.fidelity(...) figures
+    # a state fit_until ran: the wall seconds and the Segmenter's merge seconds it spent (fit(resume=) adds them)
+    spent_total: float = 0.0
+    spent_merge: float = 0.0
 
 
 #: entries of a chunk's (fields, clustered fields, probe coordinates) block in :func:`link_motions`' nearest-field
@@ -986,9 +989,12 @@ def fit_until(seg: Segmenter, links: int, stage: str, progress=None):
     """The stages of :func:`fit` (its defaults) before ``stage``: ``(state, seconds per stage)``,
     which ``fit(seg.scan, links, segmenter=seg, resume=...)`` finishes into the same fit."""
     skin = "seam" if seg.scan.kind == "greens" else "refined"
+    t0, merge0 = time.perf_counter(), seg.timings.get("merge", 0.0)
     st = _new_state(seg, int(links), "robust", skin)
     with single_threaded():
         secs = run_stages(st, progress, STAGES[:[name for name, _ in STAGES].index(stage)])
+    st.spent_total = time.perf_counter() - t0
+    st.spent_merge = seg.timings.get("merge", 0.0) - merge0
     return st, secs
 
 
@@ -1014,7 +1020,8 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     faster. The results are the same (weights within 1e-11).
 
     ``resume``: ``(state, seconds)``, a :class:`FitState` of this fit the first stages have run on
-    and their seconds per stage (:mod:`linkcount` decides on them): the fit runs the rest.
+    and their seconds per stage (:mod:`linkcount` decides on them): the fit runs the rest; its
+    ``timings`` (merge, total) include what :func:`fit_until` spent on the state.
     """
     with single_threaded():
         return _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin, resume)
@@ -1035,6 +1042,8 @@ def _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin, 
         skin = "seam" if scan.kind == "greens" else "refined"
     if resume is not None:
         state, done = resume
+        t_start -= state.spent_total             # the fit's first stages ran in fit_until
+        merge_before -= state.spent_merge
         stage_times = {**done, **run_stages(state, progress, STAGES[len(done):])}
     else:
         state = _new_state(seg, links, motion, skin)

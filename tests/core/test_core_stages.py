@@ -430,3 +430,21 @@ def test_big_weight_solves_on_two_threads_give_the_same_skin():
     (w1, e1, f1), (w2, e2, f2) = res[10 ** 9], res[8]
     assert np.array_equal(w1, w2) and np.array_equal(f1, f2) and abs(e1 - e2) <= 1e-12 * e1
     assert np.allclose(w1.sum(axis=1), 1.0) and (np.count_nonzero(w1, axis=1) <= 4).all()
+
+
+def test_resumed_fit_is_the_whole_fit_and_its_timings_count_the_first_stages():
+    """A fit finished from :func:`fit.fit_until`'s state (links auto's partial fits) is the fit run
+    whole, and its ``timings`` count the stages the partial ran: the merge share and a total at
+    least the sum of every stage's seconds (the panel and Auto Links report them)."""
+    scan = samples.make("branching")
+    whole = F.fit(scan, 5, segmenter=F.Segmenter(scan))
+    seg = F.Segmenter(scan)
+    state, done = F.fit_until(seg, 5, "split")
+    assert "relabel" in done and "split" not in done
+    resumed = F.fit(scan, 5, segmenter=seg, resume=(state, done))
+    assert np.array_equal(resumed.face_labels, whole.face_labels)
+    assert np.allclose(resumed.weights, whole.weights, atol=1e-12)
+    tm = resumed.timings
+    assert tm["merge"] > 0 and tm["merge"] == pytest.approx(seg.timings["merge"])
+    stages = sum(v for k, v in tm.items() if k not in ("features", "cluster", "total"))
+    assert tm["total"] >= stages
