@@ -86,7 +86,8 @@ class LinkChoice:
     grown_errors: dict = dataclasses.field(default_factory=dict)   # {count: grown error %} (grow_link)
     decisions: list = dataclasses.field(default_factory=list)      # [(count, how the rule decided)]
     # what the search did: {"whole_fits": n (finished fits), "partial_fits": n (fits run up to their split
-    # stage, finished or not), "grown_links": n, "low_over_bar": [(count, grown links' lowest error / bar)]}
+    # stage, finished or not), "grown_links": n, "low_over_bar": [(count, grown links' lowest error / bar; of those grown:
+    # a continue stops growing at the first under its bar)]}
     work: dict = dataclasses.field(default_factory=dict)
 
     def reusable(self, mode: str = "global", motion: str = "robust", skin: str | None = "auto"):
@@ -547,10 +548,14 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
         chain[j] = (base.face_labels, base.weights[:, :L], base.rotations, base.translations)
         grown[j] = errors[j]
 
-    def grow_to(j):
+    def grow_to(j, k=None, below=None):
+        """The chain grown to count j; with ``below``, only until a count above k has a grown
+        error under it (the continue decision is then made: the rest would not change it)."""
         top = max(chain)
         search.plan(_cost.GROW_FITS * max(j - top, 0))
         while top < j:
+            if below is not None and any(grown[i] < below for i in range(k + 1, top + 1)):
+                break
             work["grown_links"] = work.get("grown_links", 0) + 1
             with single_threaded():      # a proxy: its small products need no BLAS threads either
                 g = grow_link(x0, fields, faces, *chain[top], units, spread) if chain[top] is not None else None
@@ -570,10 +575,11 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
         if k - min(chain) > CONTINUE_DEPTH and k not in errors and k not in partial:
             start_fit(k)                 # the chain is too long to pass more counts on: start again at k
             continue
-        grow_to(j)
-        low = min(grown[i] for i in range(k + 1, j + 1))
+        may_continue = best_k > GROWN_FLOOR and k - min(chain) <= CONTINUE_DEPTH
+        grow_to(j, k, GROWN_CONTINUE * bar if may_continue else None)
+        low = min(grown[i] for i in range(k + 1, j + 1) if i in grown)   # all of them unless it continues
         work.setdefault("low_over_bar", []).append((k, low / bar if bar > 0 else float("inf")))
-        if low < GROWN_CONTINUE * bar and best_k > GROWN_FLOOR and k - min(chain) <= CONTINUE_DEPTH:
+        if low < GROWN_CONTINUE * bar and may_continue:
             decisions.append((k, "grown continue"))
             k += 1
             known.setdefault(k, grown[k])
