@@ -125,13 +125,23 @@ def skin_links(weights) -> list:
 
 def skin_errors(weights, R, t, x0, fields) -> np.ndarray:
     """Σ_p ‖skin(weights, R_p, t_p, x0) − (x0 + u_p)‖² per vertex, (N,): how far the skin with the
-    motions ``R (P, L, 3, 3)``, ``t (P, L, 3)`` stays from the fields ``fields (P, N, 3)``."""
-    moved = skin_links(weights)            # what each link moves, found once for every field
-    err = np.zeros(x0.shape[0])
-    for p in range(fields.shape[0]):
-        d = skin(weights, R[p], t[p], x0, moved) - (x0 + fields[p])
-        err += np.einsum("ni,ni->n", d, d)
+    motions ``R (P, L, 3, 3)``, ``t (P, L, 3)`` stays from the fields ``fields (P, N, 3)``
+    (``weights`` (N, L') with L' ≤ L: the first L' links). The skin of a block of fields at once
+    as blended transforms (:func:`blended_linear`, :data:`SKIN_BLOCK_BYTES` of them)."""
+    N, L = weights.shape
+    err = np.zeros(N)
+    step = max(1, int(SKIN_BLOCK_BYTES // (8 * 12 * max(N, 1))))
+    for c0 in range(0, fields.shape[0], step):
+        c = slice(c0, c0 + step)
+        d = np.einsum("bnij,nj->bni", blended_linear(weights, R[c, :L]), x0)
+        d += np.matmul(weights, t[c, :L])
+        d -= x0 + fields[c]
+        err += np.einsum("bni,bni->n", d, d)
     return err
+
+
+#: bytes of the blended transforms (12 numbers a vertex and field) one block of :func:`skin_errors` takes
+SKIN_BLOCK_BYTES = 32 * 2 ** 20
 
 
 def blended_linear(weights, R) -> np.ndarray:

@@ -448,3 +448,19 @@ def test_resumed_fit_is_the_whole_fit_and_its_timings_count_the_first_stages():
     assert tm["merge"] > 0 and tm["merge"] == pytest.approx(seg.timings["merge"])
     stages = sum(v for k, v in tm.items() if k not in ("features", "cluster", "total"))
     assert tm["total"] >= stages
+
+
+@pytest.mark.parametrize("block_bytes", [1, 2 ** 30])
+def test_skin_errors_are_each_fields_skin_error_in_any_blocks(monkeypatch, block_bytes):
+    """``model.skin_errors`` (blocks of fields as blended transforms) is Σ_p ‖skin_p − X_p‖² of the
+    per-pose skin, one field a block or all at once, with weights over the first links only."""
+    rng = np.random.default_rng(3)
+    N, L, P = 300, 6, 7
+    w = rng.random((N, L - 1)) * (rng.random((N, L - 1)) < 0.4)
+    w[np.arange(N), rng.integers(0, L - 1, N)] += 0.2
+    w /= w.sum(axis=1, keepdims=True)
+    R = Rotation.random(P * L, random_state=4).as_matrix().reshape(P, L, 3, 3)
+    t, x0, u = rng.normal(size=(P, L, 3)), rng.normal(size=(N, 3)), rng.normal(size=(P, N, 3))
+    want = sum(np.sum((model.skin(w, R[p], t[p], x0) - (x0 + u[p])) ** 2, axis=1) for p in range(P))
+    monkeypatch.setattr(model, "SKIN_BLOCK_BYTES", block_bytes)
+    assert np.allclose(model.skin_errors(w, R, t, x0, u), want, rtol=1e-12, atol=0)
