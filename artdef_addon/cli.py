@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import os
 import sys
 import time
@@ -290,6 +291,11 @@ def _cmd_fit(a) -> int:
         raise _BadInput(str(exc)) from None
     headless = None
     if blender or kind != "npz":
+        # Python finds its temporary folder by writing and removing a probe file there the first
+        # time it is asked: ask now, not inside the Blender stage's output capture, where a Ctrl-C
+        # could leave the probe behind (blender_output's log is a temporary file)
+        import tempfile
+        tempfile.gettempdir()
         headless = blender_layer()
         try:
             headless.require_bpy()
@@ -303,7 +309,11 @@ def _cmd_fit(a) -> int:
         if not os.path.exists(a.scan) and kind == "animated":
             raise _BadInput(f"{a.scan}: no such file")
         try:
-            prepared, sc = headless.scan_from_file(a.scan, frames, clips=a.clip)
+            with blender_output() as import_log:
+                prepared, sc = headless.scan_from_file(a.scan, frames, clips=a.clip)
+            if not a.quiet:
+                for line in _warnings_of(import_log, {}):
+                    print(line)
         except RuntimeError as exc:
             raise _BadInput(str(exc).splitlines()[0] if str(exc) else "cannot read the file") from None
     t_load = time.perf_counter() - t0
@@ -343,9 +353,13 @@ def _cmd_fit(a) -> int:
                                                      ("fbx", a.fbx))}
             if not a.quiet:
                 print("building the Blender outputs", flush=True)
-            made = headless.build_outputs(a.scan, sc, result, tmp["blend"], tmp["glb"], tmp["png"],
-                                          fbx=tmp["fbx"], mesh=prepared, rotation_only=a.rotation_only)
+            with blender_output() as stage_log:
+                made = headless.build_outputs(a.scan, sc, result, tmp["blend"], tmp["glb"], tmp["png"],
+                                              fbx=tmp["fbx"], mesh=prepared, rotation_only=a.rotation_only)
             rot_err = made.pop("rotation_only_error", None) if made else None
+            if not a.quiet:
+                for line in _warnings_of(stage_log, {v: getattr(a, k) for k, v in tmp.items() if v}):
+                    print(line)
         written = out.commit()
     _committed.extend(written)
     if not a.quiet:
@@ -403,6 +417,74 @@ def main(argv=None) -> int:
         msg = " ".join(str(exc).split())
         return _fail(f"internal error: {type(exc).__name__}: {msg} (earlier files are unchanged; "
                      "set ARTDEF_TRACEBACK=1 for the traceback)", 1)
+
+
+class _BlenderLog:
+    """What Blender printed during a stage of :func:`blender_output` (``text``, after it ends)."""
+    text = ""
+
+
+@contextlib.contextmanager
+def blender_output():
+    """Keep Blender's own printing off the terminal for a ``with`` block: its operators' reports,
+    its importers' and exporters' logs, the GPU back end's warnings, written by C code and by its
+    add-ons to the process's stdout and stderr. They go to a temporary file instead (both file
+    descriptors), so ``-q`` prints nothing on success and the command line's own lines are all a
+    user sees; yields a :class:`_BlenderLog` holding the text afterwards. When the block fails and
+    ``ARTDEF_TRACEBACK`` is set, the text is copied to stderr. Where the process has no real
+    stdout/stderr descriptors (an embedding host) the output is left alone."""
+    import tempfile
+    captured = _BlenderLog()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    try:
+        saved = (os.dup(1), os.dup(2))
+    except OSError:
+        yield captured
+        return
+    log = tempfile.TemporaryFile()
+    ok = False
+    try:
+        os.dup2(log.fileno(), 1)
+        os.dup2(log.fileno(), 2)
+        yield captured
+        ok = True
+    finally:
+        _flush_c_stdio()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
+        log.seek(0)
+        captured.text = log.read().decode("utf-8", "replace")
+        log.close()
+        if not ok and os.environ.get("ARTDEF_TRACEBACK") and captured.text:
+            sys.stderr.write(captured.text)
+            sys.stderr.flush()
+
+
+def _flush_c_stdio() -> None:
+    """Flush the C library's stdio buffers (Blender's printf), so nothing written inside
+    :func:`blender_output` reaches the terminal after it; best effort (POSIX)."""
+    try:
+        import ctypes
+        ctypes.CDLL(None).fflush(None)
+    except Exception:
+        pass
+
+
+def _warnings_of(log: _BlenderLog, paths: dict) -> list:
+    """Blender's warning reports in ``log`` (lines ``Warning: ...``), the temporary output paths
+    in them replaced by the final ones (``paths``: temporary -> final)."""
+    out = []
+    for line in log.text.splitlines():
+        if line.startswith("Warning: "):
+            for tmp, final in paths.items():
+                line = line.replace(tmp, final)
+            out.append(line)
+    return out
 
 
 def remove_blender_tempdir() -> None:

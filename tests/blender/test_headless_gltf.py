@@ -105,6 +105,27 @@ def test_fit_cli_writes_every_output(fitted):
     assert head == b"BLENDER" or head[:4] == b"\x28\xb5\x2f\xfd", head  # plain or zstd
 
 
+def test_blender_stage_prints_only_the_commands_own_lines(fitted):
+    """Blender's own printing in the Blender stage (operator reports naming temporary files, the
+    exporters' logs, the bpy wheel's Draco/MeshOptimizer "ERROR" lines, GPU warnings on stderr)
+    stays off the terminal: the command prints its summary and the files it wrote."""
+    out, err = fitted["proc"].stdout, fitted["proc"].stderr
+    assert "building the Blender outputs" in out and f"wrote {fitted['glb']}" in out
+    for chatter in ("Draco", "glTF 2.0 export", "Info: ", ".artdef-tmp", "Saved"):
+        assert chatter not in out, chatter
+    assert err == ""
+
+
+def test_quiet_fit_with_every_blender_output_prints_nothing(rod_scan, tmp_path):
+    """``-q``: nothing on stdout or stderr on success, every output written."""
+    out = {k: tmp_path / f"rod.{k}" for k in ("npz", "blend", "glb", "fbx", "png")}
+    proc = _ok(_run(["-m", "artdef_addon", "fit", str(rod_scan), "--links", str(LINKS), "-q",
+                     "-o", str(out["npz"]), "--blend", str(out["blend"]), "--glb", str(out["glb"]),
+                     "--fbx", str(out["fbx"]), "--png", str(out["png"])], cwd=tmp_path))
+    assert (proc.stdout, proc.stderr) == ("", "")
+    assert all(p.is_file() and p.stat().st_size > 0 for p in out.values())
+
+
 _BLEND_PROBE = """
 import sys, bpy
 bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
