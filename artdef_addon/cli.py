@@ -430,25 +430,26 @@ def blender_output():
     its importers' and exporters' logs, the GPU back end's warnings, written by C code and by its
     add-ons to the process's stdout and stderr. They go to a temporary file instead (both file
     descriptors), so ``-q`` prints nothing on success and the command line's own lines are all a
-    user sees; yields a :class:`_BlenderLog` holding the text afterwards. When the block fails and
-    ``ARTDEF_TRACEBACK`` is set, the text is copied to stderr. Where the process has no real
-    stdout/stderr descriptors (an embedding host) the output is left alone."""
+    user sees; yields a :class:`_BlenderLog` holding the text afterwards. With ``ARTDEF_TRACEBACK``
+    set the output is left on the terminal (a failure's details, and a crash's, which would die with
+    the temporary file), as it is where the process has no real stdout/stderr descriptors (an
+    embedding host)."""
     import tempfile
     captured = _BlenderLog()
     sys.stdout.flush()
     sys.stderr.flush()
     try:
+        if os.environ.get("ARTDEF_TRACEBACK"):
+            raise OSError("left on the terminal")
         saved = (os.dup(1), os.dup(2))
     except OSError:
         yield captured
         return
     log = tempfile.TemporaryFile()
-    ok = False
     try:
         os.dup2(log.fileno(), 1)
         os.dup2(log.fileno(), 2)
         yield captured
-        ok = True
     finally:
         _flush_c_stdio()
         sys.stdout.flush()
@@ -460,9 +461,6 @@ def blender_output():
         log.seek(0)
         captured.text = log.read().decode("utf-8", "replace")
         log.close()
-        if not ok and os.environ.get("ARTDEF_TRACEBACK") and captured.text:
-            sys.stderr.write(captured.text)
-            sys.stderr.flush()
 
 
 def _flush_c_stdio() -> None:
