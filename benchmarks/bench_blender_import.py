@@ -28,23 +28,8 @@ import tempfile
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def _status_kb(field: str) -> int:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-    return 0
-
-
-def _reset_peak():
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")  # resets VmHWM to the current RSS (Linux ≥ 4.0)
-        return True
-    except OSError:
-        return False
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+from peak import reset_peak as _reset_peak, status_kb as _status_kb  # noqa: E402
 
 
 def make_scan(path: str, triangles: int, fields: int):

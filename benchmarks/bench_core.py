@@ -45,19 +45,7 @@ sys.path.insert(0, HERE)
 
 from artdef_addon import fit as F, metric, quality  # noqa: E402
 from generate import branching_scan  # noqa: E402
-
-
-def _status_kb(field: str) -> int:
-    """A line of /proc/self/status in kB (VmRSS now, VmHWM peak); falls back to getrusage."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        pass
-    import resource
-    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+from peak import status_kb as _status_kb  # noqa: E402
 
 
 def _median_time(fn, repeats: int) -> float:

@@ -34,27 +34,10 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from artdef_addon import api, fit as F, linkcount, samples, scan as S  # noqa: E402
+from peak import reset_peak, status_kb  # noqa: E402
 
-
-def _status(key: str) -> float:
-    """A /proc/self/status figure in bytes (VmRSS, VmHWM), 0 where there is none."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(key + ":"):
-                    return float(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0.0
-
-
-def _reset_peak() -> None:
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    except OSError:
-        pass
 
 SETS = ["gltf_RiggedSimple", "cragl_cylinder_gt", "gltf_RiggedFigure", "gltf_Fox", "cragl_cube_gt",
         "threejs_RobotExpressive", "gltf_CesiumMan", "cragl_cow_gt", "cragl_wolf_gt", "cragl_cheburashka_gt"]
@@ -72,13 +55,13 @@ def row(data: str, name: str, kind: str, verify: bool) -> None:
     mx = max(30, int(1.5 * L))
     est, _ = api.plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind,
                       auto=True, max_links=mx)
-    _reset_peak()
-    rss = _status("VmRSS")
+    reset_peak()
+    rss = 1024.0 * status_kb("VmRSS")
     t0 = time.perf_counter()
     seg = F.Segmenter(scan)
     c = linkcount.choose_links(seg, max_links=mx)
     dt = time.perf_counter() - t0
-    peak = max(_status("VmHWM") - rss, 0.0)
+    peak = max(1024.0 * status_kb("VmHWM") - rss, 0.0)
     t0 = time.perf_counter()
     F.fit(scan, L, segmenter=F.Segmenter(scan))
     fixed = time.perf_counter() - t0
