@@ -439,10 +439,10 @@ def blender_output():
     sys.stdout.flush()
     sys.stderr.flush()
     try:
-        if os.environ.get("ARTDEF_TRACEBACK"):
-            raise OSError("left on the terminal")
-        saved = (os.dup(1), os.dup(2))
+        saved = None if os.environ.get("ARTDEF_TRACEBACK") else (os.dup(1), os.dup(2))
     except OSError:
+        saved = None
+    if saved is None:
         yield captured
         return
     log = tempfile.TemporaryFile()

@@ -435,6 +435,7 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
     Returns ``(labels (T,), w (N, L+1), R (P, L+1, 3, 3), t (P, L+1, 3), error %)``.
     """
     from .joints import lsq_motions
+    from .swaps import TRIAL_ROUNDS
     L = R.shape[1]
     face_err = skin_errors(w, R, t, x0, fields)[faces].sum(axis=1)
     order = units[np.argsort(-face_err[units], kind="stable")]
@@ -453,26 +454,13 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
     R1 = np.concatenate([R, Rr], axis=1)
     t1 = np.concatenate([t, tr], axis=1)
     w0 = np.concatenate([w, np.zeros((w.shape[0], 1))], axis=1)
-    return decompose_from(x0, fields, faces, new, w0, R1, t1, units, spread)
-
-
-def decompose_from(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray, w: np.ndarray,
-                   R: np.ndarray, t: np.ndarray, units: np.ndarray, spread: float):
-    """A swap trial's skin decomposition (:func:`skinning.alternate_scored`, ``swaps.TRIAL_ROUNDS``
-    rounds on the relabelling's vertex sample, extended to every vertex by
-    :func:`skinning.full_skin`) from the skin ``w (N, L)`` and motions ``R (P, L, 3, 3)``,
-    ``t (P, L, 3)`` over the links of ``labels (T,)``; then every face to the link of its largest
-    summed weight (a link left without a clustered triangle of ``units`` keeps its faces, as the
-    relabelling does). Returns ``(labels (T,), w (N, L), R, t, error %)`` (Karni–Gotsman, ``spread``
-    its denominator ‖X − X̄‖²)."""
-    from .swaps import TRIAL_ROUNDS
-    rows = skinning.vertex_sample(faces, labels, x0.shape[0])   # as the relabelling: None on small meshes
-    w1, R1, t1, e1 = skinning.alternate_scored(x0, fields, faces, labels, R, t, iterations=TRIAL_ROUNDS, w_init=w,
+    rows = skinning.vertex_sample(faces, new, x0.shape[0])   # as the relabelling: None on small meshes
+    w1, R1, t1, e1 = skinning.alternate_scored(x0, fields, faces, new, R1, t1, iterations=TRIAL_ROUNDS, w_init=w0,
                                                rows=rows)
     if rows is not None:
-        w1, e1 = skinning.full_skin(x0, fields, faces, labels, R1, t1, rows=rows, w_rows=w1)[:2]
-    new = dominant_faces(w1, faces, labels, units)
-    return new, w1, R1, t1, (100.0 * np.sqrt(max(e1, 0.0) / spread) if spread > 0 else 0.0)
+        w1, e1 = skinning.full_skin(x0, fields, faces, new, R1, t1, rows=rows, w_rows=w1)[:2]
+    grown = dominant_faces(w1, faces, new, units)
+    return grown, w1, R1, t1, (100.0 * np.sqrt(max(e1, 0.0) / spread) if spread > 0 else 0.0)
 
 
 def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgress, fits: dict,

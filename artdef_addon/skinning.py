@@ -482,7 +482,8 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     row_err = np.empty(N)
 
     def solve(se):
-        """The weights of rows s:e (independent of every other row)."""
+        """The weights of rows s:e (independent of every other row) into ``wc``, their errors into
+        ``row_err``; returns their convex optimum with ``free_out``, else None."""
         s, e = se
         Qb = Q[s:e] if details else _pair_quadratic(xh[s:e], G, cols[s:e])
         wb = simplex_least_squares(Qb, q[s:e], valid[s:e], max_support=max_influences,
@@ -500,16 +501,15 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
     threads = 2 if not details and N >= THREAD_ROWS else 1
     part = min(block, -(-N // threads))
     parts = [(s, min(N, s + part)) for s in range(0, N, part)]
-    found = {}
     with stepping(threads, len(parts)) as each:
-        each(lambda se: found.__setitem__(se, solve(se)), parts)
-    total = 0.0
+        convex = each(solve, parts)
+    total = 0.0                          # summed a SOLVE_BLOCK at a time, as one thread would
     for s in range(0, N, block):
         total += float(np.sum(row_err[s:min(N, s + block)]))
     np.put_along_axis(out, cols, wc, axis=1)
     if free_out is not None:
         wf = np.zeros((N, L))
-        np.put_along_axis(wf, cols, np.concatenate([found[se] for se in parts]), axis=1)
+        np.put_along_axis(wf, cols, np.concatenate(convex), axis=1)
         free_out["w"] = wf
     if details:
         return out, max(total, 0.0), {"cols": cols, "valid": valid, "Q": Q, "q": q, "xx": xx, "wc": wc, "err": err}
@@ -653,19 +653,16 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
 
 @contextlib.contextmanager
 def stepping(threads: int, n: int):
-    """A function ``each(fn, items)`` that calls ``fn`` on every item: on ``threads`` threads where
-    ``threads`` and the ``n`` runs stepped are above one (numpy releases the GIL in most of a
-    decomposition round), else in turn. The threads end with the ``with`` block."""
+    """A function ``each(fn, items)`` that calls ``fn`` on every item and returns the results in
+    order: on ``threads`` threads where ``threads`` and the ``n`` runs stepped are above one (numpy
+    releases the GIL in most of a decomposition round), else in turn. The threads end with the
+    ``with`` block."""
     from .metric import worker_count
     threads = min(threads, worker_count())          # at most one per core the process may use
     pool = ThreadPoolExecutor(threads) if threads > 1 and n > 1 else None
 
     def each(fn, items):
-        if pool is None:
-            for a in items:
-                fn(a)
-        else:
-            list(pool.map(fn, items))
+        return [fn(a) for a in items] if pool is None else list(pool.map(fn, items))
     try:
         yield each
     finally:
