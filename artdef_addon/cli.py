@@ -56,7 +56,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="another clip of the same mesh (animated file or sequence; repeatable): "
                         "all clips are fitted as one rig with one action each")
     f.add_argument("--frames", metavar="START:END[:STEP]",
-                   help="animated file or sequence: frames to sample (default: the file's keys)")
+                   help="animated files or sequences: frames to sample in each input, --clip "
+                        "ones too (a sequence's file numbers are its frames; default: the "
+                        "file's keys, every file of a sequence)")
     f.add_argument("--links", required=True,
                    help="number of links, or 'auto' to choose it from the data")
     _option_arguments(f)

@@ -244,6 +244,15 @@ def import_animated(context, path):
     return [o for o in bpy.data.objects if o not in before]
 
 
+def operator_error(err: RuntimeError) -> str:
+    """The one line of a failed ``bpy.ops`` call: its last ERROR report (Blender raises them as
+    ``Error: ...`` lines, a nested call's inside a traceback, then ``Location: ...``)."""
+    lines = [ln.strip() for ln in str(err).splitlines()]
+    errors = [ln.split("Error: ", 1)[1].replace("Error: ", "") for ln in lines
+              if "Error: " in ln and not ln.startswith("Error: Python: Traceback")]
+    return errors[-1] if errors else (lines[0] if lines else "the operator failed")
+
+
 class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
     """Import an animated file (glTF, FBX, Alembic, USD, or a numbered OBJ/PLY sequence) with Blender's importer and sample its animated mesh over the file's own frames into a tracked scan (Fields from Animation), ready to fit"""
     bl_idname = "artdef.fields_from_file"
@@ -278,7 +287,13 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
             except ValueError as err:
                 self.report({'ERROR'}, str(err))
                 return {'CANCELLED'}
-            return bpy.ops.artdef.import_mesh_sequence(filepath=first)
+            frames = {p: getattr(self, p) for p in ("frame_start", "frame_end", "frame_step")
+                      if self.properties.is_property_set(p)}
+            try:
+                return bpy.ops.artdef.import_mesh_sequence(filepath=first, **frames)
+            except RuntimeError as err:  # its ERROR report, once more as this operator's
+                self.report({'ERROR'}, operator_error(err))
+                return {'CANCELLED'}
         try:
             new = import_animated(context, path)
         except (RuntimeError, ValueError) as err:

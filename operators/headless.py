@@ -462,7 +462,8 @@ def _scan_from_file(path: str, frames=None, clips=()):
     """Import an animated file or an OBJ/PLY sequence in a fresh scene and
     sample it into a tracked scan with ``bpy.ops.artdef.fields_from_file`` (the
     Fields from Animation code, over the file's own frames unless ``frames`` =
-    (start, end, step)).  ``clips``: more files or sequences of the same mesh,
+    (start, end, step), which applies to every input; a sequence's file numbers
+    are its frames).  ``clips``: more files or sequences of the same mesh,
     each one clip: the scans are merged, so the fit makes one rig with one
     action per clip (named after the files).  Returns ``(mesh object holding
     the scan, Scan)``; RuntimeError with a one-line reason on failure."""
@@ -474,20 +475,20 @@ def _scan_from_file(path: str, frames=None, clips=()):
     kwargs = {"filepath": os.path.abspath(path)}
     if frames is not None:
         kwargs.update(frame_start=frames[0], frame_end=frames[1], frame_step=frames[2])
+    animfile = importlib.import_module(module_name + ".operators.animfile")
     objects = []
     for i, p in enumerate([path, *clips]):
-        kw = dict(kwargs, filepath=os.path.abspath(p)) if i == 0 else {"filepath": os.path.abspath(p)}
+        kw = dict(kwargs, filepath=os.path.abspath(p))   # --frames: every input alike
         messages = []
         try:
             result = bpy.ops.artdef.fields_from_file(**kw)
         except RuntimeError as ex:  # the operator's ERROR report
-            messages.append(str(ex).strip().splitlines()[-1].replace("Error: ", ""))
+            messages.append(animfile.operator_error(ex))
             result = {'CANCELLED'}
         if 'FINISHED' not in result:
             raise RuntimeError(messages[0] if messages else f"cannot sample {p}")
         objects.append(bpy.context.view_layer.objects.active)
     if clips:
-        animfile = importlib.import_module(module_name + ".operators.animfile")
         names = [animfile.clip_name(p) for p in [path, *clips]]
         try:
             animfile.merge_clip_scans(objects, names)

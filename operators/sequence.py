@@ -471,6 +471,28 @@ def find_sequence(path):
     return [os.path.join(directory, found[k]) for k in sorted(found)]
 
 
+def select_frames(paths, rest, start=None, end=None, step=None):
+    """The files of a sequence to sample (``paths`` by number, ``rest`` the index of the rest
+    pose): the rest file, and the files numbered ``start``, ``start + step``, ... up to ``end``
+    (a file's number is its frame; ``None``: the first or last number, step 1). Returns
+    ``(paths, rest)`` with ``rest`` re-indexed; SequenceError when no other file is in range."""
+    numbers = [split_number(os.path.basename(p))[1] for p in paths]
+    lo = numbers[0] if start is None else start
+    hi = numbers[-1] if end is None else end
+    step = 1 if step is None else step
+    if step < 1:
+        raise SequenceError(f"frame step {step}: must be at least 1")
+    keep = [i for i, n in enumerate(numbers)
+            if i == rest or (lo <= n <= hi and (n - lo) % step == 0)]
+    if len(keep) < 2:
+        prefix, _, ext = split_number(os.path.basename(paths[0]))
+        where = os.path.join(os.path.basename(os.path.dirname(paths[0])), f"{prefix}###{ext}")
+        raise SequenceError(f"{where}: no file is numbered within frames {lo}..{hi}"
+                            + (f" every {step}" if step > 1 else "")
+                            + f" (its files are numbered {numbers[0]}..{numbers[-1]})")
+    return [paths[i] for i in keep], keep.index(rest)
+
+
 def _same_connectivity(first, other, name, first_name):
     if len(other.vertices) != len(first.vertices):
         raise SequenceError(f"connectivity differs: {name} has {len(other.vertices)} vertices, "

@@ -326,6 +326,12 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper):
     rest_number: IntProperty(
         name="Rest Number", default=-1, min=-1,
         description="Number in the file name of the rest pose (-1: the first file)")
+    frame_start: IntProperty(name="Start", default=0,
+                             description="First file number sampled (unset: the first file)")
+    frame_end: IntProperty(name="End", default=0,
+                           description="Last file number sampled (unset: the last file)")
+    frame_step: IntProperty(name="Step", default=1, min=1,
+                            description="Sample every n-th number from Start (unset: every file)")
 
     @classmethod
     def poll(cls, context):
@@ -354,6 +360,11 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper):
                         f"no file numbered {self.rest_number} in the sequence "
                         f"({numbers[0]}..{numbers[-1]})")
                 rest = numbers.index(self.rest_number)
+            given = {p: getattr(self, p) for p in ("frame_start", "frame_end", "frame_step")
+                     if self.properties.is_property_set(p)}
+            if given:  # a file's number is its frame; the rest file stays
+                paths, rest = sequence.select_frames(paths, rest, given.get("frame_start"),
+                                                     given.get("frame_end"), given.get("frame_step"))
             wm.progress_begin(0, len(paths))
             try:
                 seq = sequence.load_sequence(paths, rest, lambda i, n: wm.progress_update(i))

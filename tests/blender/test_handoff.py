@@ -783,6 +783,22 @@ def test_several_sequences_fit_one_rig_with_one_clip_each(clean_scene, tmp_path)
         times = sorted({round(float(t) * 24, 3) for s in anims[name]["samplers"]
                         for t in accessor(gltf, binary, s["input"]).ravel()})
         assert times[0] == 0 and times[-1] == frames[-1]
+    # --frames applies to every input: the files numbered 6..15 of each (rest file kept)
+    picked = tmp_path / "picked.glb"
+    _ok(_run(["-m", "artdef_addon", "fit", str(tmp_path / "walk"), "--clip", str(tmp_path / "wave"),
+              "--links", "3", "--frames", "6:15", "--glb", str(picked)], cwd=tmp_path))
+    gltf, binary = read_glb(picked)
+    for anim in gltf["animations"]:
+        times = sorted({round(float(t) * 24, 3) for s in anim["samplers"]
+                        for t in accessor(gltf, binary, s["input"]).ravel()})
+        assert times[-1] == {"walk": 15, "wave": 9}[anim["name"]], (anim["name"], times)
+    # a range with no file of one input: one line naming it, nothing written
+    empty = tmp_path / "empty.glb"
+    proc = _run(["-m", "artdef_addon", "fit", str(tmp_path / "walk"), "--clip", str(tmp_path / "wave"),
+                 "--links", "3", "--frames", "10:12", "--glb", str(empty)], cwd=tmp_path)
+    assert proc.returncode == 2 and "wave/pose_###.obj: no file is numbered within frames 10..12" \
+        in proc.stderr, proc.stderr[-1500:]
+    assert len(proc.stderr.strip().splitlines()) == 1 and not empty.exists()
     # a clip of another mesh: one line, nothing written
     other = tmp_path / "other"
     other.mkdir()

@@ -444,6 +444,22 @@ def test_mixed_obj_ply_sequence_is_refused(tmp_path):
     assert len(seq.find_sequence(str(tmp_path / "pose_000.obj"))) == 2
 
 
+def test_sequence_frames_pick_files_by_number_and_keep_the_rest(tmp_path):
+    """--frames on a sequence: a file's number is its frame; the rest file stays (first here,
+    or the one chosen), the others are those numbered START, START+STEP, ... up to END; a range
+    with no file names the sequence and its numbers."""
+    seq = _sequence_module()
+    paths = [str(tmp_path / "walk" / f"pose_{n:03d}.obj") for n in (0, 5, 10, 15, 20)]
+    assert seq.select_frames(paths, 0, 5, 15, 10) == ([paths[0], paths[1], paths[3]], 0)
+    assert seq.select_frames(paths, 0, 10, None, None) == ([paths[0], paths[2], paths[3], paths[4]], 0)
+    assert seq.select_frames(paths, 2, None, 6, None) == ([paths[0], paths[1], paths[2]], 2)
+    with pytest.raises(seq.SequenceError, match=r"walk/pose_###.obj: no file is numbered within "
+                                                r"frames 6..9 \(its files are numbered 0..20\)"):
+        seq.select_frames(paths, 0, 6, 9, None)
+    with pytest.raises(seq.SequenceError, match=r"within frames 10..10"):
+        seq.select_frames(paths, 2, 10, 10, 1)   # only the rest file itself
+
+
 def test_setup_on_a_full_disk_says_so_before_creating_anything(tmp_path):
     """scripts/env.sh (the README's commands' set-up) checks the free space before it creates or
     fills a virtual environment: one line naming the disk and the space, exit 1, nothing created
