@@ -146,6 +146,11 @@ def distance_block(f: FieldFeatures, rows, cols) -> np.ndarray:
     a = residuals(f, rows, cols)          # motion of row applied to col triangle
     a -= f.r_self[cols][None, :]
     np.abs(a, out=a)
+    if rows.shape == cols.shape and np.array_equal(rows, cols):
+        # one set against itself (a small link's medoids, the merge's medoid pairs): the reverse
+        # residuals are this product's transpose, the same numbers as a second product gives
+        a += a.T
+        return a
     b = residuals(f, cols, rows).T        # motion of col applied to row triangle
     b -= f.r_self[rows][:, None]
     np.abs(b, out=b)
