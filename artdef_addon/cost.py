@@ -13,10 +13,15 @@ PAIRS_PER_SECOND = 3.0e7
 #: average-linkage seconds per condensed entry (scipy's nearest-neighbour chain)
 LINKAGE_SECONDS_PER_ENTRY = 9.0e-8
 #: reduced method: seconds per triangle × field of the streamed features and neighbour distances
-#: (its measurement: ``benchmarks/results/core_constants.md``)
-REDUCED_SECONDS_PER_TRIANGLE_FIELD = 8.0e-6
+#: (its measurement: ``benchmarks/results/core_constants.md``; 8e-6 until stop 26, when the
+#: generated 107k- and 1.03M-triangle scans measured 2.2-3.7e-6 with numpy 2.5 on two threads)
+REDUCED_SECONDS_PER_TRIANGLE_FIELD = 4.0e-6
 #: bytes per triangle per field of the cached per-field features
 FEATURE_BYTES = 8 * 63
+#: reduced method: peak bytes per triangle of each field in flight in the patch stream (its features
+#: over every triangle and their temporaries; two fields at a time on two cores). Measured (stop 26):
+#: the features stage's rise of the peak RSS 2,245 MB at 1.03M triangles, 346 MB at 107k
+STREAM_BYTES_PER_TRIANGLE_FIELD = 1050.0
 DEFAULT_BUDGET = 2 * 1024 ** 3
 
 
@@ -55,12 +60,23 @@ DEFAULT_LINKS = 20
 #: tracked scans: the articulation stage (the relabelling's skin decompositions and link swaps, the
 #: refined skin, the split stage; since the third speed push on a vertex sample and at most 64
 #: fields, the skin polished and extended on every vertex and field): seconds per link × vertex ×
-#: field and per link (the per-link work of every decomposition round and swap trial). Refitted
-#: after the split stage (issue 19) to the fixed fits of ``benchmarks/links_auto.py`` (15 sets and
-#: pose kinds, 2 to 36 links, 96 to 11,666 vertices, 5 to 27 fields): 0.55-1.8 x of the measured time
-#: (``benchmarks/results/links_auto.md``; before, 0.45-0.65 x on the Fox and cheburashka)
-SKIN_SECONDS_PER_LINK_VERTEX_FIELD = 7.0e-7
-SKIN_SECONDS_PER_LINK = 0.03
+#: field, per link, and per link² (the swap and split trials grow with the links, and each round of
+#: a trial updates every link's motion in turn). Fitted (minimax of the log ratio) to the fixed fits of
+#: the 16 shared sets and pose kinds (2 to 36 links, 96 to 11,666 vertices, 5 to 400 fields; two runs,
+#: stop 26, ``benchmarks/results/estimate.md``): 0.66-1.88 x of the measured time (cheburashka's split
+#: trials the high end), against 0.62-1.92 x before (the Fox's 22 links and RobotExpressive's 36
+#: underpriced, the 1.03M-triangle scan overpriced 2.2 x)
+SKIN_SECONDS_PER_LINK_VERTEX_FIELD = 9.0e-7
+SKIN_SECONDS_PER_LINK = 0.018
+SKIN_SECONDS_PER_LINK_SQUARED = 0.0013
+#: ... where the decompositions run on a vertex sample (``skinning.SAMPLE_VERTICES``, at most half the
+#: mesh) the first term stops growing with the mesh: it counts at most this many vertices, and every
+#: vertex adds the full-mesh skins' cost (weights extended from the sample, the polish). Fitted to the
+#: generated branching scans (``benchmarks/generate.py``, 11 links, 20 fields; stop 26): 1.26 x of the
+#: measured time at 1.03M triangles (0.46 x before), 0.52 x at 107k (0.24 x); their small sizes, whose
+#: skins explain the poses at once, stay overpriced (0.27-0.40 x at 4k-17k triangles)
+SKIN_SAMPLED_VERTICES = 12000
+SKIN_SECONDS_PER_LINK_VERTEX_FIELD_ALL = 1.0e-7
 #: the segmentation's merge to k links (Λ merge, the links' medoids, the seam refinement): seconds
 #: per clustered unit × field clustered
 MERGE_SECONDS_PER_UNIT_FIELD = 5.5e-6
@@ -72,15 +88,18 @@ SEGMENT_FIELDS = 64
 #: 54, the small rigid sets all), each a merge as below plus ``CURVE_SECONDS_PER_COUNT``; then about
 #: ``AUTO_WHOLE_FITS`` fits at ``AUTO_LINKS_SHARE`` of Max Links (fits run up to their split stage,
 #: the chosen count finished, whole fits where grown links do not settle a decision, the drop of
-#: links that are not bones) and ``AUTO_GROWN_LINKS`` grown links. Fitted to the shared sets'
-#: searches (minimax of the log ratio): within 2 x on 8 of 15 (CesiumMan 0.54-0.82 x, cheburashka
-#: 1.5 x, RobotExpressive's own poses 1.0 x); what the counts cannot tell is how many fits the
-#: decisions take: 1 (CesiumMan, the wolf, the rigid sets: 0.27-0.54 x, 1-7 s) to 10
-#: (RobotExpressive's fresh poses, its tree pick 8 links short: 3.7 x)
+#: links that are not bones) and ``AUTO_GROWN_LINKS`` grown links. Fitted again with the link²
+#: term of the fits (stop 26, the shared sets' searches on that stop's machine, most rows within 2 x
+#: with no search priced lower than before): within 2 x on 8 of 15, 0.30-2.90 x (the constants before,
+#: 3 fits and 8 grown links: 8 of 15, 0.33-3.45 x). What the counts cannot tell is how many fits the
+#: decisions take: 1 (CesiumMan's fresh poses, the wolf, the rigid sets: 0.30-0.57 x, 1-8 s) to 10
+#: (RobotExpressive's fresh poses, its tree pick 8 links short: 2.9 x)
 CURVE_SHARE = 0.6
 CURVE_SECONDS_PER_COUNT = 0.0
-AUTO_WHOLE_FITS = 3.0
-AUTO_GROWN_LINKS = 8
+AUTO_WHOLE_FITS = 2.5
+AUTO_GROWN_LINKS = 4
+#: the fits a search keeps in memory (the chosen count's, those of the counts around it)
+AUTO_KEPT_FITS = 3.0
 #: the search's peak memory beyond one fit's, per link × vertex × field (fitted to the shared sets'
 #: searches after main's lockstep split trials, da2876b: 0.44-2.26 x of the measured peak RSS rise,
 #: the ends RiggedSimple's 5 MB and RobotExpressive's fresh poses, ten whole fits kept)
@@ -102,11 +121,20 @@ SKIN_BYTES_PER_VERTEX_LINK = 48.0
 SOLVE_BYTES_PER_VERTEX = 8.0 * 9 * 9 * 6
 
 
+def stream_bytes(triangles: int, fields: int) -> float:
+    """Peak bytes of the reduced method's patch stream (``fit.Segmenter``): every triangle's features
+    of the fields in flight (two at a time where two cores are free, :func:`metric.worker_count`)."""
+    from .metric import worker_count
+    return STREAM_BYTES_PER_TRIANGLE_FIELD * min(2, worker_count(), max(fields, 1)) * triangles
+
+
 def articulation_cost(vertices: int, fields: int, links: int) -> tuple[float, float]:
     """(seconds, bytes) of a tracked scan's articulation stage (skin decompositions)."""
     from .skinning import SOLVE_BLOCK
     from .swaps import SWAP_BUDGET
-    secs = links * (SKIN_SECONDS_PER_LINK_VERTEX_FIELD * vertices * fields + SKIN_SECONDS_PER_LINK)
+    secs = links * (SKIN_SECONDS_PER_LINK_VERTEX_FIELD * min(vertices, SKIN_SAMPLED_VERTICES) * fields
+                    + SKIN_SECONDS_PER_LINK_VERTEX_FIELD_ALL * vertices * fields + SKIN_SECONDS_PER_LINK
+                    + SKIN_SECONDS_PER_LINK_SQUARED * links)
     swaps = vertices * fields <= SWAP_BUDGET
     solve_rows = vertices if swaps else min(vertices, SOLVE_BLOCK)   # swaps keep the whole systems
     mem = SKIN_BYTES_PER_VERTEX_LINK * vertices * (links + 1) + SOLVE_BYTES_PER_VERTEX * solve_rows
@@ -131,7 +159,8 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
     seconds = 2 * pairs * seg_fields / PAIRS_PER_SECOND + linkages * pairs * LINKAGE_SECONDS_PER_ENTRY
     if reduced:
         seconds += triangles * seg_fields * REDUCED_SECONDS_PER_TRIANGLE_FIELD  # streamed features, neighbour distances
-        mem = 2 * 8.0 * pairs + FEATURE_BYTES * (u * seg_fields + triangles) + 8.0 * 3 * vertices * fields * 2
+        mem = 2 * 8.0 * pairs + FEATURE_BYTES * u * seg_fields + stream_bytes(triangles, seg_fields) \
+            + 8.0 * 3 * vertices * fields * 2
     else:
         mem = full
     if strategy == "summed":
@@ -146,7 +175,7 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
                 + AUTO_GROWN_LINKS * GROW_FITS * secs
             # the fits the search keeps (their residuals, skins and motions), and what its fits and grown
             # links hold per link, vertex and field (AUTO_BYTES_PER_LINK_VERTEX_FIELD)
-            mem += (AUTO_WHOLE_FITS + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L) \
+            mem += (AUTO_KEPT_FITS + 2) * 8.0 * (2 * 3 * vertices * fields + vertices * L + 12 * fields * L) \
                 + AUTO_BYTES_PER_LINK_VERTEX_FIELD * vertices * fields * L
         else:
             seconds += merge + secs
