@@ -18,11 +18,12 @@ import os
 
 import bpy
 import numpy as np
-from bpy.props import IntProperty, StringProperty
+from bpy.props import StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from . import compat, menus
 from .ops import in_object_mode
+from .sources import FrameRange
 from ..artdef_addon import cli as _cli
 from ..artdef_addon.cli import SEQUENCE_EXTENSIONS
 
@@ -253,7 +254,7 @@ def operator_error(err: RuntimeError) -> str:
     return errors[-1] if errors else (lines[0] if lines else "the operator failed")
 
 
-class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
+class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
     """Import an animated file (glTF, FBX, Alembic, USD, or a numbered OBJ/PLY sequence) with Blender's importer and sample its animated mesh over the file's own frames into a tracked scan (Fields from Animation), ready to fit"""
     bl_idname = "artdef.fields_from_file"
     bl_label = "Import Animated File as Scan"
@@ -263,12 +264,6 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
         default="*.glb;*.gltf;*.fbx;*.abc;*.usd;*.usdc;*.usda;*.usdz;*.obj;*.ply",
         options={'HIDDEN'})
     filename_ext = ""
-    frame_start: IntProperty(name="Start", default=0,
-                             description="First frame sampled (unset: the file's first key)")
-    frame_end: IntProperty(name="End", default=0,
-                           description="Last frame sampled (unset: the file's last key)")
-    frame_step: IntProperty(name="Step", default=1, min=1,
-                            description="Sample every n-th frame (unset: the file's key spacing)")
 
     @classmethod
     def poll(cls, context):
@@ -287,10 +282,8 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
             except ValueError as err:
                 self.report({'ERROR'}, str(err))
                 return {'CANCELLED'}
-            frames = {p: getattr(self, p) for p in ("frame_start", "frame_end", "frame_step")
-                      if self.properties.is_property_set(p)}
             try:
-                return bpy.ops.artdef.import_mesh_sequence(filepath=first, **frames)
+                return bpy.ops.artdef.import_mesh_sequence(filepath=first, **self.given_frames())
             except RuntimeError as err:  # its ERROR report, once more as this operator's
                 self.report({'ERROR'}, operator_error(err))
                 return {'CANCELLED'}
@@ -304,10 +297,9 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
             self._remove(new)
             self.report({'ERROR'}, f"{os.path.basename(path)}: no animated mesh in the file")
             return {'CANCELLED'}
-        props = self.properties
         arm, clips = armature_clips(obj)
-        if clips and not any(props.is_property_set(p) for p in ("frame_start", "frame_end",
-                                                                 "frame_step")):
+        given = self.given_frames()
+        if clips and not given:
             scan_obj = sample_clips(context, obj, arm, clips)
             if scan_obj is None:
                 self._remove(new)
@@ -326,12 +318,9 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper):
                                   f"sampled at their own frames")
             return {'FINISHED'}
         start, end, step = file_frames(obj, context.scene)
-        if props.is_property_set("frame_start"):
-            start = self.frame_start
-        if props.is_property_set("frame_end"):
-            end = self.frame_end
-        if props.is_property_set("frame_step"):
-            step = self.frame_step
+        start = given.get("frame_start", start)
+        end = given.get("frame_end", end)
+        step = given.get("frame_step", step)
         scene = context.scene
         for _ in range(2):  # the file's own range (start may not pass end: set twice)
             scene.frame_start, scene.frame_end = start, max(end, start)

@@ -313,7 +313,27 @@ class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
 # mesh sequence
 # --------------------------------------------------------------------------
 
-class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper):
+class FrameRange:
+    """Start, End and Step of the frames an import samples, each left to the file unless given
+    (a sequence's file numbers are its frames): one declaration for Import Mesh Sequence and
+    Import Animated File (``animfile``), which passes them on to the former."""
+    frame_start: IntProperty(name="Start", default=0,
+                             description="First frame sampled; a sequence's file number "
+                                         "(unset: the file's first key, the first file)")
+    frame_end: IntProperty(name="End", default=0,
+                           description="Last frame sampled; a sequence's file number "
+                                       "(unset: the file's last key, the last file)")
+    frame_step: IntProperty(name="Step", default=1, min=1,
+                            description="Sample every n-th frame from Start "
+                                        "(unset: the file's key spacing, every file)")
+
+    def given_frames(self) -> dict:
+        """The frame settings given to this call: ``{"frame_start": ..., ...}``."""
+        return {p: getattr(self, p) for p in ("frame_start", "frame_end", "frame_step")
+                if self.properties.is_property_set(p)}
+
+
+class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper, FrameRange):
     """Import numbered OBJ or PLY files with shared connectivity (pose_000.obj, pose_001.obj, ...) as one tracked scan: the rest pose (the first file unless Rest Number names another) becomes a mesh, every other file a displacement field"""
     bl_idname = "artdef.import_mesh_sequence"
     bl_label = "Import Mesh Sequence"
@@ -326,12 +346,6 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper):
     rest_number: IntProperty(
         name="Rest Number", default=-1, min=-1,
         description="Number in the file name of the rest pose (-1: the first file)")
-    frame_start: IntProperty(name="Start", default=0,
-                             description="First file number sampled (unset: the first file)")
-    frame_end: IntProperty(name="End", default=0,
-                           description="Last file number sampled (unset: the last file)")
-    frame_step: IntProperty(name="Step", default=1, min=1,
-                            description="Sample every n-th number from Start (unset: every file)")
 
     @classmethod
     def poll(cls, context):
@@ -360,8 +374,7 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper):
                         f"no file numbered {self.rest_number} in the sequence "
                         f"({numbers[0]}..{numbers[-1]})")
                 rest = numbers.index(self.rest_number)
-            given = {p: getattr(self, p) for p in ("frame_start", "frame_end", "frame_step")
-                     if self.properties.is_property_set(p)}
+            given = self.given_frames()
             if given:  # a file's number is its frame; the rest file stays
                 paths, rest = sequence.select_frames(paths, rest, given.get("frame_start"),
                                                      given.get("frame_end"), given.get("frame_step"))

@@ -1532,7 +1532,11 @@ def test_memory_budget_switches_to_reduced_method_and_says_so(clean_scene, pkg, 
 def test_estimate_follows_the_settings(pkg):
     plan = pkg.ops.method_plan
     est, arg = plan(1_000_000, 50, 500_000, "tracked", 'AUTO', 2.0)
-    assert est.reduced and arg is None and 0 < est.memory_bytes <= 2 * 2 ** 30
+    # the reduced method: the patch stream's features over every triangle (the peak at this size,
+    # above the 2 GB budget, which bounds the pairwise stage) and the scan's fields, under 4 GB
+    cost = importlib.import_module(pkg.api.__name__.rpartition(".")[0] + ".cost")
+    stream = cost.stream_bytes(1_000_000, 50)
+    assert est.reduced and arg is None and stream < est.memory_bytes < 4 * 2 ** 30
     est, arg = plan(1_000_000, 50, 500_000, "tracked", 'OFF', 2.0)
     assert not est.reduced and arg is False and est.memory_bytes > 1e12
     est, arg = plan(1000, 12, 500, "tracked", 'ON', 2.0)
