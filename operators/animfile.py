@@ -317,10 +317,18 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
                                   f"{len(clips)} clips ({', '.join(a.name for a in clips)}) "
                                   f"sampled at their own frames")
             return {'FINISHED'}
-        start, end, step = file_frames(obj, context.scene)
-        start = given.get("frame_start", start)
-        end = given.get("frame_end", end)
+        first, last, step = file_frames(obj, context.scene)
         step = given.get("frame_step", step)
+        start, end = given.get("frame_start", first), given.get("frame_end", last)
+        if given:   # the given range, on its own grid, within the file's frames
+            start += -(-max(first - start, 0) // step) * step
+            end = min(end, last)
+            if start > end:
+                self._remove(new)
+                self.report({'ERROR'}, f"{os.path.basename(path)}: no frame within "
+                                       f"{given.get('frame_start', first)}..{given.get('frame_end', last)}"
+                                       f" (its frames are {first}..{last})")
+                return {'CANCELLED'}
         scene = context.scene
         for _ in range(2):  # the file's own range (start may not pass end: set twice)
             scene.frame_start, scene.frame_end = start, max(end, start)

@@ -630,12 +630,12 @@ def test_cli_fits_fbx_alembic_and_sequences(clean_scene, tmp_path, kind):
     if kind == "fbx":
         src = tmp_path / "source.fbx"
         assert bpy.ops.export_scene.fbx(filepath=str(src)) == {'FINISHED'}
-        args = [str(src), "--frames", "1:21:5"]
+        args = [str(src), "--frames", "1:40:5"]    # past the file's last key (21): up to it
         frames = [1, 6, 11, 16, 21]
     elif kind == "abc":
         src = tmp_path / "source.abc"
         assert bpy.ops.wm.alembic_export(filepath=str(src), start=1, end=21) == {'FINISHED'}
-        args = [str(src), "--frames", "1:21:5"]
+        args = [str(src), "--frames=-4:21:5"]   # from before the cache's first frame: its grid
         frames = [1, 6, 11, 16, 21]
     else:
         folder = tmp_path / "poses"
@@ -657,6 +657,13 @@ def test_cli_fits_fbx_alembic_and_sequences(clean_scene, tmp_path, kind):
     gltf, binary = read_glb(out)
     assert len(gltf["meshes"]) == 1 and len(gltf["skins"]) == 1
     assert glb_times(gltf, binary) == pytest.approx([f / 24 for f in frames], abs=1e-4)
+    if kind == "fbx":   # a range with no frame of the file: one line, nothing written
+        empty = tmp_path / "empty.glb"
+        proc = _run(["-m", "artdef_addon", "fit", str(src), "--frames", "30:40", "--links", "3",
+                     "--glb", str(empty)], cwd=tmp_path)
+        assert proc.returncode == 2 and proc.stderr.strip() == (
+            "artdef: error: source.fbx: no frame within 30..40 (its frames are 1..21)"), proc.stderr
+        assert not empty.exists()
 
 
 def _play_clip(clip):
