@@ -38,7 +38,18 @@ class Estimate:
         how = (f"reduced method on about {self.units} patches" if self.reduced
                else f"full method on {self.triangles} triangles")
         return (f"estimate: {how}, {self.fields} fields: about {format_bytes(self.memory_bytes)} peak, "
-                f"{self.seconds:.0f} s")
+                f"{format_seconds(self.seconds)}")
+
+
+def format_seconds(seconds: float) -> str:
+    """'under 1 s', '45 s', '12 min', '2.5 h': an estimate's time as the command line and the panel show it."""
+    if seconds < 1.0:
+        return "under 1 s"
+    if seconds < 120.0:
+        return f"{seconds:.0f} s"
+    if seconds < 7200.0:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def format_bytes(n: float) -> str:

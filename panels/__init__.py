@@ -6,6 +6,7 @@ import textwrap
 import bpy
 
 from ..artdef_addon import wording
+from ..artdef_addon.cost import format_seconds
 from ..artdef_addon.options import GB, FitOptions
 from ..operators import io, ops, rig
 from ..operators.props import SETTING_NAMES
@@ -180,16 +181,6 @@ def _gb(nbytes):
     return f"{gb:,.0f}"
 
 
-def _duration(seconds):
-    if seconds < 1.0:
-        return "under 1 s"
-    if seconds < 120.0:
-        return f"{seconds:.0f} s"
-    if seconds < 7200.0:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
 def _draw_estimate(layout, mesh, st):
     """What a fit with these settings costs, from the counts only (no fit):
     memory, time and the method (full, or reduced on about N patches)."""
@@ -201,7 +192,7 @@ def _draw_estimate(layout, mesh, st):
     col = layout.column(align=True)
     col.scale_y = 0.8
     col.label(text=f"Estimate: about {_gb(est.memory_bytes)} GB, "
-                   f"{_duration(est.seconds)}", icon='TIME')
+                   f"{format_seconds(est.seconds)}", icon='TIME')
     if est.reduced:
         col.label(text=f"reduced method on about {est.units:,} patches", icon='BLANK1')
     else:

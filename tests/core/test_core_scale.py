@@ -34,6 +34,16 @@ def test_reduced_method_is_chosen_for_speed_and_the_estimate_prices_the_fit():
     assert greens.seconds < many.seconds
 
 
+def test_estimate_time_reads_as_a_duration():
+    """The estimate's time as the command line and the panel print it: no "0 s" for a fit that
+    takes a fraction of a second (issue 16 quotes the panel's "0 s" for a five-minute search)."""
+    assert cost.format_seconds(0.3) == "under 1 s"
+    assert cost.format_seconds(45.4) == "45 s"
+    assert cost.format_seconds(750.0) == "12 min"
+    assert cost.format_seconds(9000.0) == "2.5 h"
+    assert cost.estimate(584, 3, 297).describe().endswith("peak, under 1 s")
+
+
 def test_reduced_method_agrees_with_full():
     scan, truth = samples.branching(noise=0.02, bulges=True)
     full = F.fit(scan, 11)
