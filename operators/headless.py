@@ -472,16 +472,13 @@ def _scan_from_file(path: str, frames=None, clips=()):
 
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     module_name = ensure_registered()
-    kwargs = {"filepath": os.path.abspath(path)}
-    if frames is not None:
-        kwargs.update(frame_start=frames[0], frame_end=frames[1], frame_step=frames[2])
+    given = {} if frames is None else dict(frame_start=frames[0], frame_end=frames[1], frame_step=frames[2])
     animfile = importlib.import_module(module_name + ".operators.animfile")
     objects = []
-    for i, p in enumerate([path, *clips]):
-        kw = dict(kwargs, filepath=os.path.abspath(p))   # --frames: every input alike
+    for p in [path, *clips]:          # --frames: every input alike
         messages = []
         try:
-            result = bpy.ops.artdef.fields_from_file(**kw)
+            result = bpy.ops.artdef.fields_from_file(filepath=os.path.abspath(p), **given)
         except RuntimeError as ex:  # the operator's ERROR report
             messages.append(animfile.operator_error(ex))
             result = {'CANCELLED'}

@@ -32,6 +32,7 @@ def pkg(installed_addon):
         model = importlib.import_module(installed_addon + ".artdef_addon.model")
         ops = importlib.import_module(installed_addon + ".operators.ops")
         api = importlib.import_module(installed_addon + ".artdef_addon.api")
+        cost = importlib.import_module(installed_addon + ".artdef_addon.cost")
         io = importlib.import_module(installed_addon + ".operators.io")
         rig = importlib.import_module(installed_addon + ".operators.rig")
     return P
@@ -1534,8 +1535,7 @@ def test_estimate_follows_the_settings(pkg):
     est, arg = plan(1_000_000, 50, 500_000, "tracked", 'AUTO', 2.0)
     # the reduced method: the patch stream's features over every triangle (the peak at this size,
     # above the 2 GB budget, which bounds the pairwise stage) and the scan's fields, under 4 GB
-    cost = importlib.import_module(pkg.api.__name__.rpartition(".")[0] + ".cost")
-    stream = cost.stream_bytes(1_000_000, 50)
+    stream = pkg.cost.stream_bytes(1_000_000, 50)
     assert est.reduced and arg is None and stream < est.memory_bytes < 4 * 2 ** 30
     est, arg = plan(1_000_000, 50, 500_000, "tracked", 'OFF', 2.0)
     assert not est.reduced and arg is False and est.memory_bytes > 1e12
