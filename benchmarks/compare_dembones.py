@@ -111,16 +111,22 @@ def run_artdef(scan: Scan, L, kw: dict, segmenter=None):
     return res, secs, err
 
 
+def cpu_seconds() -> float:
+    """CPU time of this process, every thread (OpenMP's and OpenBLAS's included), in seconds: beside the
+    wall time it shows how many of the machine's cores a program kept busy."""
+    return time.process_time()
+
+
 def run_dembones(x0, faces, X, bones: int, nnz: int, iters: int):
     """Dem Bones' whole decomposition (its own initialisation + iterations): weights (N,B), bones, error, s."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), cpu_seconds()
     solver = _prepare_solver(x0, X, bones, faces=faces, max_influences=nnz, iterations=iters)
     solver.compute()
     out = _read_skinning_result(solver)
-    secs = time.perf_counter() - t0
+    secs, cpu = time.perf_counter() - t0, cpu_seconds() - c0
     W, M = out.weights, out.transforms                      # (B, N), (P, B, 4, 4)
     Xhat = np.einsum("bn,pbij,nj->pni", W, M[:, :, :3, :3], x0) + np.einsum("bn,pbi->pni", W, M[:, :, :3, 3])
-    return dict(weights=W.T, bones=int(solver.nB), error=kg_error(X, Xhat), seconds=secs,
+    return dict(weights=W.T, bones=int(solver.nB), error=kg_error(X, Xhat), seconds=secs, cpu=cpu,
                 rmse_check=abs(np.sqrt(np.mean(np.sum((X - Xhat) ** 2, axis=-1))) - solver.rmse()))
 
 
@@ -198,18 +204,20 @@ def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
         seg = None
         for i, (label, kw) in enumerate(variants):
             try:
-                times = []
+                times, cpus = [], []
                 for _ in range(reps):
                     if i == 0:  # the main fit, from scratch; later variants reuse its distances
-                        t0 = time.perf_counter()
+                        t0, c0 = time.perf_counter(), cpu_seconds()
                         seg = F.Segmenter(scan)
                         res = F.fit(scan, L, segmenter=seg, **kw)
-                        secs = time.perf_counter() - t0
+                        secs, cpus_i = time.perf_counter() - t0, cpu_seconds() - c0
                         err = kg_error(X, artdef_articulation(res, x0))
+                        cpus.append(cpus_i)
                     else:
                         res, secs, err = run_artdef(scan, L, kw, segmenter=seg)
                     times.append(secs)
                 secs = float(np.median(times))
+                cpu = float(np.median(cpus)) if cpus else None
             except (ScanError, ValueError) as exc:
                 print(f"  {name}: {label} failed: {exc}")
                 row[label] = None
@@ -217,7 +225,7 @@ def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
             check = abs(err - res.articulation_error_percent)
             owning = len(np.unique(res.face_labels))
             reduced = any(str(n).startswith("reduced method") for n in (getattr(res, "notes", None) or []))
-            r = dict(seconds=secs, error=err, links=res.n_links, owning=owning, check=check,
+            r = dict(seconds=secs, cpu=cpu, error=err, links=res.n_links, owning=owning, check=check,
                      reported=res.articulation_error_percent, reduced=reduced)
             if truth is not None:
                 r["ari"] = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
@@ -231,6 +239,7 @@ def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
                 runs = [run_dembones(x0, scan.faces, X, L, nnz, iters) for _ in range(reps)]
                 db = runs[-1]
                 db["seconds"] = float(np.median([d["seconds"] for d in runs]))
+                db["cpu"] = float(np.median([d["cpu"] for d in runs]))
                 lab = face_labels_from_weights(scan.faces, db["weights"])
                 db["owning"] = len(np.unique(lab))
                 if truth is not None:
@@ -272,7 +281,8 @@ def line(row, variants) -> str:
     for label, _ in variants:
         r = row.get(label)
         if r:
-            s = f"{label}{' (reduced method)' if r.get('reduced') else ''} {r['seconds']:.2f}s err {r['error']:.2f}% links {r['owning']}"
+            cpu = f" (CPU {r['cpu']:.2f}s)" if r.get("cpu") is not None else ""
+            s = f"{label}{' (reduced method)' if r.get('reduced') else ''} {r['seconds']:.2f}s{cpu} err {r['error']:.2f}% links {r['owning']}"
             if "ari" in r:
                 s += f" ARI {r['ari']:.3f} joints {_fmt_joints(r['joints'])}"
             if r["check"] > 1e-6:
@@ -283,7 +293,7 @@ def line(row, variants) -> str:
         parts.append(f"links auto {au['links']} ({au['seconds']:.1f}s)" if "links" in au else f"links auto failed: {au['error']}")
     db = row.get("dembones")
     if db:
-        s = f"Dem Bones {db['seconds']:.2f}s err {db['error']:.2f}% bones {db['bones']} (owning faces {db['owning']})"
+        s = f"Dem Bones {db['seconds']:.2f}s (CPU {db['cpu']:.2f}s) err {db['error']:.2f}% bones {db['bones']} (owning faces {db['owning']})"
         if "ari" in db:
             s += f" ARI {db['ari']:.3f}"
         parts.append(s)
@@ -312,6 +322,22 @@ def tables(rows, variants) -> str:
         cells += [f"{r0['seconds'] / db['seconds']:.2f}" if r0 and db and db["seconds"] > 0 else "—"]
         out.append("| " + " | ".join(cells) + " |")
     lb0 = labels[0]
+    out += ["", "### Cores kept busy: wall time against CPU time", "",
+            "CPU time counts every thread of the process (Dem Bones' OpenMP loops, OpenBLAS, artdef's own "
+            "threads); cores = CPU / wall. The time bar is on wall time; the CPU ratio is the work each "
+            "program does.", "",
+            f"| scan | {lb0} wall (s) | {lb0} CPU (s) | {lb0} cores | Dem Bones wall (s) | Dem Bones CPU (s) "
+            "| Dem Bones cores | wall ratio | CPU ratio |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in rows:
+        db, r0 = row.get("dembones"), row.get(lb0)
+        if not (db and r0 and r0.get("cpu") and db["seconds"] > 0 and db["cpu"] > 0):
+            continue
+        out.append("| " + " | ".join([
+            row["name"].replace("_", "\\_"), f"{r0['seconds']:.2f}", f"{r0['cpu']:.2f}",
+            f"{r0['cpu'] / r0['seconds']:.2f}", f"{db['seconds']:.2f}", f"{db['cpu']:.2f}",
+            f"{db['cpu'] / db['seconds']:.2f}", f"{r0['seconds'] / db['seconds']:.2f}",
+            f"{r0['cpu'] / db['cpu']:.2f}"]) + " |")
     out += ["", "### Structure (scans with a true skeleton)", "",
             "| scan | true links | artdef links | links auto | Dem Bones bones (owning faces) | ARI artdef | ARI Dem Bones "
             "| artdef joint error, median / max % of diagonal (≤ 2%) |",
