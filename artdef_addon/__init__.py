@@ -13,6 +13,27 @@ scripts all use it):
 (every fit setting, declared once in :mod:`artdef_addon.options`) and returns a
 :class:`FitResult` with ``save(path)`` / ``FitResult.load(path)``.
 """
+import sys as _sys
+
+if _sys.argv[:1] == ["-m"]:
+    # ``python -m artdef_addon`` (the command line): a Ctrl-C while numpy and scipy load gives the
+    # command line's one line, not a traceback; nothing has been read or written yet.
+    # ``__main__`` puts Python's own handler back before the command runs.
+    import signal as _signal
+
+    def _interrupted_while_loading(signum, frame):
+        what = "terminated" if signum == _signal.SIGTERM else "interrupted"
+        _sys.stderr.write(f"artdef: error: {what}; no file was written or changed\n")
+        _sys.stderr.flush()
+        import os as _os
+        _os._exit(128 + signum)
+
+    try:
+        _signal.signal(_signal.SIGINT, _interrupted_while_loading)
+        _signal.signal(_signal.SIGTERM, _interrupted_while_loading)
+    except ValueError:      # not the main thread
+        pass
+
 from . import fit, samples, scan
 from .api import load_scan, segment
 from .fit import FitCancelled, FitResult

@@ -3,6 +3,9 @@ import sys
 
 from .cli import exit_process, main
 
+# the package's import held Ctrl-C and SIGTERM to one line (artdef_addon/__init__.py); from here on
+# the command's own handling applies
+signal.signal(signal.SIGINT, signal.default_int_handler)
 code = main()
 if "bpy" in sys.modules:
     # Blender's teardown at interpreter exit must not be interrupted: a SIGINT there (Python has

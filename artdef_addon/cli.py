@@ -200,6 +200,36 @@ def input_kind(path: str) -> str | None:
     return None
 
 
+def input_files(path: str) -> list:
+    """Every file a run reads through the input ``path``, for the outputs' "not an input" check:
+    the file itself; a ``.gltf``'s external buffers and images; for a sequence (a folder, a pattern
+    or one numbered file), every OBJ/PLY file of its folder (a superset of its frames, so that no
+    output can replace one of them)."""
+    out = [path]
+    kind = input_kind(path)
+    if kind == "sequence":
+        folder = path if os.path.isdir(path) else (os.path.dirname(path) or ".")
+        try:
+            names = os.listdir(folder)
+        except OSError:
+            names = []
+        out += [os.path.join(folder, n) for n in names if os.path.splitext(n)[1].lower() in SEQUENCE_EXTENSIONS]
+    elif path.lower().endswith(".gltf") and os.path.isfile(path):
+        import json
+        from urllib.parse import unquote
+        try:
+            with open(path, "rb") as f:
+                doc = json.loads(f.read())
+            uris = [item.get("uri") for key in ("buffers", "images") for item in doc.get(key) or []
+                    if isinstance(item, dict)]
+        except (OSError, ValueError, AttributeError, TypeError):
+            uris = []          # an unreadable .gltf is refused when it is read
+        folder = os.path.dirname(path)
+        out += [os.path.join(folder, unquote(u)) for u in uris
+                if isinstance(u, str) and u and not u.startswith("data:")]
+    return out
+
+
 def parse_frames(text: str | None):
     """``START:END[:STEP]`` -> (start, end, step); None for None.  ValueError
     with one line saying what is wrong."""
@@ -216,7 +246,14 @@ def parse_frames(text: str | None):
                          f"got {text!r}") from None
     if end < start or step < 1:
         raise ValueError(f"--frames {text}: END must not be before START and STEP must be >= 1")
+    if max(abs(start), abs(end), step) > FRAME_LIMIT:
+        raise ValueError(f"--frames {text}: frames and step must lie within ±{FRAME_LIMIT:,} "
+                         "(Blender's frame numbers are 32-bit)")
     return start, end, step
+
+
+#: the largest frame number (and step) ``--frames`` takes: Blender's integer properties are 32-bit
+FRAME_LIMIT = 2 ** 31 - 1
 
 
 def blender_layer():
@@ -255,7 +292,7 @@ def _cmd_fit(a) -> int:
     t0 = time.perf_counter()
     blender = bool(a.blend or a.glb or a.fbx or a.png)
     # every output checked before any work: writable directory, not an input, not each other
-    files.check_outputs([a.scan, *a.clip], {"-o": a.output, "--blend": a.blend, "--glb": a.glb,
+    files.check_outputs([f for p in (a.scan, *a.clip) for f in input_files(p)], {"-o": a.output, "--blend": a.blend, "--glb": a.glb,
                                             "--fbx": a.fbx, "--png": a.png})
     if a.rotation_only and not (a.blend or a.glb or a.fbx):
         raise _BadInput("--rotation-only applies to the rig: add --blend, --glb or --fbx")
@@ -274,6 +311,8 @@ def _cmd_fit(a) -> int:
             raise _BadInput(f"--clip {clip}: not an animated file or an OBJ/PLY sequence")
         if input_kind(clip) == "animated" and not os.path.exists(clip):
             raise _BadInput(f"--clip {clip}: no such file")
+        if input_kind(clip) == "animated" and not os.path.isfile(clip):
+            raise _BadInput(f"--clip {clip}: not a regular file")
     if frames is not None and kind == "npz":
         raise _BadInput("--frames applies to animated files and sequences, not to a .npz scan")
     auto = str(a.links).strip().lower() == "auto"
@@ -302,14 +341,17 @@ def _cmd_fit(a) -> int:
         try:
             headless.require_bpy()
         except RuntimeError as exc:
-            raise _BadInput(str(exc) if kind == "npz" else
-                            f"reading {os.path.basename(a.scan)} needs Blender: " + str(exc)) from None
+            what = ("--" + "/--".join(k for k in ("blend", "glb", "fbx", "png") if getattr(a, k))
+                    if kind == "npz" else f"reading {os.path.basename(a.scan)}")
+            raise _BadInput(str(exc).replace("this needs Blender", f"{what} needs Blender", 1)) from None
     prepared = None
     if kind == "npz":
         sc = files.read_scan(a.scan)    # BadFile: one line naming the file and the problem
     else:
         if not os.path.exists(a.scan) and kind == "animated":
             raise _BadInput(f"{a.scan}: no such file")
+        if kind == "animated" and not os.path.isfile(a.scan):
+            raise _BadInput(f"{a.scan}: not a regular file")
         try:
             with blender_output() as import_log:
                 prepared, sc = headless.scan_from_file(a.scan, frames, clips=a.clip)
@@ -319,6 +361,9 @@ def _cmd_fit(a) -> int:
         except RuntimeError as exc:
             raise _BadInput(str(exc).splitlines()[0] if str(exc) else "cannot read the file") from None
     t_load = time.perf_counter() - t0
+    if a.rotation_only and sc.kind == "greens":
+        raise _BadInput("--rotation-only applies to tracked scans (a Green's rig is posed by its load controls; "
+                        "in Blender, Finalize it first)")
     usable = sc.n_faces - len(sc.degenerate_faces)
     why = f" (the scan's {usable} non-degenerate triangles)"
     if auto and max_links is None:
@@ -362,8 +407,10 @@ def _cmd_fit(a) -> int:
             if not a.quiet:
                 for line in _warnings_of(stage_log, {v: getattr(a, k) for k, v in tmp.items() if v}):
                     print(line)
-        written = out.commit()
-    _committed.extend(written)
+        try:
+            out.commit()
+        finally:
+            _committed.extend(out.committed)
     if not a.quiet:
         print(f"{os.path.basename(a.scan)}: {sc.kind} scan, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
               f"{sc.n_fields} fields")
@@ -384,6 +431,14 @@ def _cmd_fit(a) -> int:
     return 0
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a cancelled job): the same clean-up as Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated
+
+
 def main(argv=None) -> int:
     """Run the command line; returns the exit code (README, "Exit codes and guarantees"):
     0 success, 2 bad input or unusable output path (one line, nothing written), 1 a failure while
@@ -391,15 +446,35 @@ def main(argv=None) -> int:
     from .files import OutputError
     from .scan import ScanError
     _committed.clear()
+    import signal
+    try:
+        signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:              # not the main thread: the caller handles its signals
+        pass
+    import warnings
+    given, argv, i = list(sys.argv[1:] if argv is None else argv), [], 0
+    while i < len(given):
+        # a range starting below zero ("--frames -5:3") would read as an option to argparse
+        if given[i] == "--frames" and i + 1 < len(given) and given[i + 1].startswith("-") and ":" in given[i + 1]:
+            argv.append("--frames=" + given[i + 1])
+            i += 2
+        else:
+            argv.append(given[i])
+            i += 1
     try:
         a = _parser().parse_args(argv)
-        return {"fit": _cmd_fit, "sample": _cmd_sample, "info": _cmd_info}[a.command](a)
+        with warnings.catch_warnings():
+            # numpy's overflow / invalid-value notes on extreme but accepted scans (coordinates near
+            # scan.MAX_MAGNITUDE) are not the user's to act on: the command prints its one line
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return {"fit": _cmd_fit, "sample": _cmd_sample, "info": _cmd_info}[a.command](a)
     except (_BadInput, ScanError, OutputError, OptionError) as exc:
         return _fail(" ".join(str(exc).split()) or "bad input")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        what, code = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", 130)
         if _committed:
-            return _fail(f"interrupted after writing {', '.join(_committed)}", 130)
-        return _fail("interrupted; no file was written or changed", 130)
+            return _fail(f"{what} after writing {', '.join(_committed)}", code)
+        return _fail(f"{what}; no file was written or changed", code)
     except BrokenPipeError:         # stdout closed by the reader (| head): not an error of ours
         try:
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -410,7 +485,9 @@ def main(argv=None) -> int:
         return exc.code if isinstance(exc.code, int) else 0
     except OSError as exc:
         where = f" {exc.filename}" if exc.filename else ""
-        return _fail(f"cannot write{where}: {exc.strerror or exc}; earlier files are unchanged", 1)
+        kept = (f"; already written: {', '.join(_committed)}, the other files are unchanged" if _committed
+                else "; earlier files are unchanged")
+        return _fail(f"cannot write{where}: {exc.strerror or exc}{kept}", 1)
     except MemoryError:
         return _fail("out of memory; earlier files are unchanged", 1)
     except Exception as exc:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import stat
 import signal
 import tempfile
 import zipfile
@@ -268,6 +269,20 @@ def _same(a: str, b: str) -> bool:
         return False
 
 
+def _special_hop(path: str) -> str | None:
+    """The first step of ``path``'s chain of symbolic links (itself included) in /dev or /proc, or
+    None: ``/dev/stdout`` and ``/proc/self/fd/1`` resolve to whatever the shell redirected, which
+    must not be replaced by an output."""
+    hop = os.path.abspath(path)
+    for _ in range(40):
+        if hop.startswith(("/dev/", "/proc/")):
+            return hop
+        if not os.path.islink(hop):
+            return None
+        hop = os.path.abspath(os.path.join(os.path.dirname(hop), os.readlink(hop)))
+    return None
+
+
 def check_outputs(inputs, outputs: dict) -> None:
     """Refuse, before any work, outputs that cannot be written or would destroy a file.
 
@@ -287,9 +302,14 @@ def check_outputs(inputs, outputs: dict) -> None:
             raise OutputError(f"{opt} {p}: is a directory")
         if os.path.exists(p) and not os.path.isfile(p):
             raise OutputError(f"{opt} {p}: exists and is not a regular file")
+        # a symbolic link is written through (Outputs.path): its target is the file replaced
+        target = os.path.realpath(p) if os.path.islink(p) else p
+        special = _special_hop(p)
+        if special:
+            raise OutputError(f"{opt} {p}: leads to {special}, not a regular file; give a file's path")
         # the directory as the OS resolves it (no lexical normalising: "missing/../in.npz" is not
         # a path to "in.npz" for the OS, and must not become one here)
-        d = os.path.dirname(p) or "."
+        d = os.path.dirname(target) or "."
         if not os.path.isdir(d):
             raise OutputError(f"{opt} {p}: the directory {d} does not exist")
         if not os.access(d, os.W_OK | os.X_OK):
@@ -312,12 +332,19 @@ class Outputs:
 
     def __init__(self):
         self._pending = []      # (temp path, final path, temp dir)
+        #: the final paths replaced so far by :meth:`commit` (all of them once it returns; those a
+        #: failure could not restore if it raises)
+        self.committed = []
 
     def __enter__(self):
         return self
 
     def path(self, final) -> str:
+        """A temporary path for the output ``final``. A ``final`` that is a symbolic link is written
+        through: the link's target is replaced, the link stays (as an editor saves)."""
         final = os.fspath(final)
+        if os.path.islink(final):
+            final = os.path.realpath(final)
         tmpdir = tempfile.mkdtemp(prefix=".artdef-tmp-", dir=os.path.dirname(final) or ".")
         tmp = os.path.join(tmpdir, os.path.basename(final))
         self._pending.append((tmp, final, tmpdir))
@@ -331,8 +358,15 @@ class Outputs:
         return tmp
 
     def commit(self) -> list:
-        """Move every written temporary into place; returns the final paths. SIGINT is held
-        off while renaming so the set of outputs is never half replaced by a Ctrl-C."""
+        """Move every written temporary into place; returns the final paths.
+
+        All or nothing: each file replaced is first kept as a hard link in its temporary
+        directory, so that when a later rename fails (a file another user owns in a sticky
+        directory, an immutable file) the ones already replaced are put back and the error names
+        the user's file. SIGINT is held off while renaming, so a Ctrl-C never leaves the set half
+        replaced. The replaced files keep their permission bits. :attr:`committed` lists the
+        finals replaced (a file whose old version could not be kept, on a file system without
+        hard links, stays listed after a failure)."""
         for tmp, final, _ in self._pending:
             if not os.path.isfile(tmp):
                 raise OSError(f"nothing was written for {final}")
@@ -340,18 +374,48 @@ class Outputs:
                 os.fsync(f.fileno())
         caught = []
         old = _hold_sigint(caught)
+        done = []                   # (final, kept old version or None, existed before)
         try:
-            done = []
-            for tmp, final, tmpdir in self._pending:
-                os.replace(tmp, final)
-                done.append(final)
-                _fsync_dir(os.path.dirname(final) or ".")
+            try:
+                for tmp, final, tmpdir in self._pending:
+                    existed = os.path.lexists(final)
+                    kept = None
+                    if existed:
+                        _keep_mode(final, tmp)
+                        kept = os.path.join(tmpdir, ".artdef-previous")
+                        try:
+                            os.link(final, kept)
+                        except OSError:
+                            kept = None
+                    try:
+                        os.replace(tmp, final)
+                    except OSError as exc:
+                        raise OSError(exc.errno, exc.strerror, final) from None
+                    done.append((final, kept, existed))
+                    self.committed.append(final)
+                    _fsync_dir(os.path.dirname(final) or ".")
+            except OSError:
+                for final, kept, existed in reversed(done):
+                    try:
+                        if kept is not None:
+                            os.replace(kept, final)
+                        elif not existed:
+                            os.remove(final)
+                        else:
+                            continue        # no old version to put back: it stays listed
+                        self.committed.remove(final)
+                    except OSError:
+                        pass
+                raise
         finally:
             self._cleanup()
             _release_sigint(old)
         if caught:
+            if signal.SIGINT not in caught and signal.getsignal(caught[0]) not in (signal.SIG_DFL, signal.SIG_IGN,
+                                                                                    None):
+                os.kill(os.getpid(), caught[0])     # the caller's own handler (cli: "terminated")
             raise KeyboardInterrupt
-        return done
+        return list(self.committed)
 
     def _cleanup(self):
         for _, _, tmpdir in self._pending:
@@ -374,6 +438,14 @@ def _savez(f, arrays: dict, compress: bool) -> None:
                 np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
+def _keep_mode(final: str, tmp: str) -> None:
+    """Give ``tmp`` the permission bits of the file it replaces (a private 0600 result stays private)."""
+    try:
+        os.chmod(tmp, stat.S_IMODE(os.stat(final).st_mode))
+    except OSError:
+        pass
+
+
 def _fsync_dir(d):
     try:
         fd = os.open(d, os.O_RDONLY)
@@ -387,16 +459,29 @@ def _fsync_dir(d):
         os.close(fd)
 
 
+#: the signals held off while a set of outputs is renamed into place (Ctrl-C, and the SIGTERM of
+#: ``kill``, ``timeout`` or a cancelled CI job)
+HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 def _hold_sigint(caught: list):
+    """Hold off :data:`HELD_SIGNALS` (their numbers go to ``caught``); returns the old handlers,
+    or None off the main thread (where no handler can be set)."""
+    old = {}
     try:
-        return signal.signal(signal.SIGINT, lambda *a: caught.append(1))
+        for sig in HELD_SIGNALS:
+            old[sig] = signal.signal(sig, lambda signum, frame: caught.append(signum))
     except ValueError:      # not the main thread
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
         return None
+    return old
 
 
 def _release_sigint(old):
     if old is not None:
-        signal.signal(signal.SIGINT, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 def write_npz(path, arrays: dict, compress: bool = False) -> None:

@@ -180,18 +180,19 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture
 def interrupt_at():
-    """``run(cmd, marker, cwd) -> (exit code, stderr)``: run ``cmd`` with the repository on
-    PYTHONPATH and send SIGINT as soon as a line of its stdout contains ``marker`` (Ctrl-C tests)."""
+    """``run(cmd, marker, cwd, sig=SIGINT) -> (exit code, stderr)``: run ``cmd`` with the repository
+    on PYTHONPATH and send ``sig`` as soon as a line of its stdout contains ``marker`` (Ctrl-C tests;
+    SIGTERM for ``kill`` and ``timeout``)."""
     import signal
 
-    def run(cmd, marker, cwd):
+    def run(cmd, marker, cwd, sig=signal.SIGINT):
         env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), PYTHONUNBUFFERED="1")
         p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
         seen = []
         for line in p.stdout:
             seen.append(line)
             if marker in line:
-                p.send_signal(signal.SIGINT)
+                p.send_signal(sig)
                 break
         try:
             _, err = p.communicate(timeout=600)
