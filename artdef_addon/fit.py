@@ -1145,7 +1145,10 @@ def _result_from_arrays(d: dict) -> FitResult:
                     setattr(r, k, float(d[k]))
             r.linear_rank = int(d["linear_rank"]) if "linear_rank" in d else 0
             r.articulated = bool(d["articulated"]) if "articulated" in d else True
-            r.notes = d["notes"].tolist() if "notes" in d else []
+            notes = d["notes"] if "notes" in d else np.array([], dtype=str)
+            if notes.ndim != 1 or notes.dtype.kind not in "U":
+                raise ValueError(f"notes must be a list of text, got {notes.dtype} of shape {notes.shape}")
+            r.notes = notes.tolist()
         if prefix + "kappa" in d:
             r.kappa = d[prefix + "kappa"]
             r.load_vertices = d[prefix + "load_vertices"]

@@ -214,7 +214,8 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
                 d -= X
                 E[l0:l0 + links] += weights[p] * np.sqrt(np.einsum("lni,lni->ln", d, d))
     scale = E.max() if E.size else 1.0
-    inv = 1.0 / (E + 1e-12 * max(scale, 1e-300))
+    # every residual zero (fields that are one rigid motion): equal costs, not 1/1e-312 = inf
+    inv = 1.0 / (E + (1e-12 * max(scale, 1e-300) if scale > 0 else 1.0))
     a, b = adjacency[:, 0], adjacency[:, 1]
     for _ in range(iterations):
         # only triangles on a seam can move: those with a neighbour in another link

@@ -37,9 +37,14 @@ _KNOWN_KEYS = {"vertices", "faces", "greens", "displacements", "load_vertices",
                "support_vertices", "probe_load", "format_version"}
 
 
-#: largest coordinate or displacement magnitude accepted: squares and sums of squares of larger
-#: values overflow float64 (the fit's distances and moments), giving NaN instead of a result
-MAX_MAGNITUDE = 1e100
+#: largest coordinate or displacement magnitude accepted: the fit's moments multiply up to four
+#: coordinates, which overflow float64 beyond about 1e77 (the rod scaled by 1e80 ended in "SVD did
+#: not converge"; 1e75 fits), giving NaN instead of a result
+MAX_MAGNITUDE = 1e60
+#: largest displacement accepted, in units of the mesh's diagonal: no measurement moves an object
+#: by 1e40 of its sizes, and from about 1e90 the fit's rest frames overflow (a Green's scan with
+#: probe_load 1e90 ended in an internal error)
+MAX_RELATIVE_FIELD = 1e40
 
 
 class ScanError(ValueError):
@@ -207,6 +212,17 @@ def _check_scan(scan: Scan) -> Scan:
     p = float(np.asarray(scan.probe_load))
     if not np.isfinite(p) or p <= 0:
         raise ScanError(f"probe_load must be a positive number, got {p}")
+    if has_g:
+        # the fields are greens x probe_load: each within the bound, their product may not be
+        top = float(np.abs(g).max()) * p if g.size else 0.0
+        if p > MAX_MAGNITUDE or not top <= MAX_MAGNITUDE:
+            raise ScanError(f"greens x probe_load reaches {top:.3g} (probe_load {p:.3g}); the fields must stay "
+                            f"below {MAX_MAGNITUDE:.0e} in magnitude")
+    fields_top = (float(np.abs(g).max()) * p if g.size else 0.0) if has_g else float(np.abs(d).max())
+    size = float(np.linalg.norm(np.ptp(v, axis=0)))
+    if fields_top > MAX_RELATIVE_FIELD * size:
+        raise ScanError(f"the fields move vertices by up to {fields_top:.3g}, over {MAX_RELATIVE_FIELD:.0e} times the "
+                        f"mesh's size ({size:.3g}): check their units" + (" and probe_load" if has_g else ""))
     out = Scan(v, f, g, d, lv, sv, p)
     # degenerate triangles: area relative to the mesh scale
     e1 = v[f[:, 1]] - v[f[:, 0]]

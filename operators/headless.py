@@ -23,7 +23,7 @@ import sys
 import tempfile
 import threading
 
-NEED_BPY = ("--blend/--glb need Blender: run inside "
+NEED_BPY = ("this needs Blender: run inside "
             "`blender -b -P scripts/artdef_fit.py -- ...` or install the bpy module")
 
 EXT_ID = "artdef"
@@ -497,6 +497,24 @@ def _scan_from_file(path: str, frames=None, clips=()):
     return mesh, io.read_scan(mesh).scan
 
 
+def labels_of_kept_faces(kept, faces, labels):
+    """The face labels ``labels (T,)`` of the scan's ``faces (T, 3)`` for the triangles ``kept
+    (K, 3)`` of the mesh Blender built from it (Blender drops triangles with a repeated vertex),
+    matched by their vertex sets, whatever the corner order. RuntimeError when a kept triangle is
+    not a face of the scan."""
+    import numpy as np  # noqa: PLC0415
+    both = np.sort(np.concatenate([np.asarray(faces), np.asarray(kept)]).astype(np.int64), axis=1)
+    _, inverse = np.unique(both, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    T = len(faces)
+    first = np.full(int(inverse.max()) + 1 if inverse.size else 0, -1, dtype=np.int64)
+    first[inverse[:T][::-1]] = np.arange(T)[::-1]           # the first scan face of each vertex set
+    index = first[inverse[T:]]
+    if np.any(index < 0):
+        raise RuntimeError("the mesh Blender built from the scan has a triangle the scan does not")
+    return np.asarray(labels)[index]
+
+
 def build_outputs(scan_path: str, scan, result, blend: str | None, glb: str | None,
                   png: str | None, *, fbx: str | None = None, mesh=None, rotation_only: bool = False,
                   load_index: int = 0, frames_per_field: int = 10) -> dict:
@@ -533,6 +551,11 @@ def _build_outputs(intr, scan_path, scan, result, blend, glb, png, fbx, mesh, ro
         mesh, _ = io.import_scan_file(bpy.context, os.path.abspath(scan_path))
         intr.check()
     stored = io.read_scan(mesh)
+    if len(stored.scan.faces) != len(result.face_labels):
+        # Blender's mesh has no triangle with a repeated vertex (the scan may, and the fit kept it)
+        import dataclasses  # noqa: PLC0415
+        result = dataclasses.replace(result, face_labels=labels_of_kept_faces(
+            stored.scan.faces, scan.faces, result.face_labels))
     with bpy.context.temp_override(active_object=mesh, object=mesh,
                                    selected_objects=[mesh], selected_editable_objects=[mesh]):
         ops.apply_result(bpy.context, mesh, result, scan, stored.tri_polygons, load_index=load_index,

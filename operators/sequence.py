@@ -84,10 +84,12 @@ def fan_triangles(sizes, indices):
     return np.stack([indices[s], indices[s + k], indices[s + k + 1]], axis=1)
 
 
-def _check_indices(name, indices, n_vertices):
+def _check_indices(name, indices, n_vertices, first=0):
+    """``first``: the number the file format gives its first vertex (OBJ 1, PLY 0), so that the
+    message repeats the number written in the file."""
     if indices.size and (indices.min() < 0 or indices.max() >= n_vertices):
         bad = int(indices.min() if indices.min() < 0 else indices.max())
-        raise SequenceError(f"{name}: a face refers to vertex {bad}, but the file has "
+        raise SequenceError(f"{name}: a face refers to vertex {bad + first}, but the file has "
                             f"{n_vertices} vertices")
 
 
@@ -98,6 +100,9 @@ def _check_indices(name, indices, n_vertices):
 def _read_bytes(path):
     """(file name, contents) of ``path``, or SequenceError naming the file."""
     name = os.path.basename(path)
+    if os.path.exists(path) and not os.path.isfile(path):
+        # a FIFO would block the read (Ctrl-C could not stop it), a device could be endless
+        raise SequenceError(f"cannot read {name}: not a regular file")
     try:
         with open(path, "rb") as f:
             return name, f.read()
@@ -155,7 +160,7 @@ def read_obj(path):
                 seen.append(n_v)
         seen = np.repeat(np.asarray(seen, dtype=np.int64), sizes)
         indices[neg] = seen[neg] + indices[neg] + 1
-    _check_indices(name, indices, len(vertices))
+    _check_indices(name, indices, len(vertices), first=1)
     return MeshFile(vertices, sizes, indices, fan_triangles(sizes, indices))
 
 

@@ -385,7 +385,7 @@ def test_build_outputs_without_bpy_says_how_to_get_it(tmp_path):
             "    headless.require_bpy()\n"
             "    raise SystemExit('require_bpy() did not raise')\n"
             "except RuntimeError as ex:\n"
-            "    assert 'need Blender' in str(ex)\n"
+            "    assert 'needs Blender' in str(ex)\n"
             "try:\n"
             "    headless.build_outputs('x.npz', None, None, None, 'x.glb', None)\n"
             "except RuntimeError as ex:\n"
@@ -393,7 +393,7 @@ def test_build_outputs_without_bpy_says_how_to_get_it(tmp_path):
             "    raise SystemExit(3)\n")
     proc = _run(["-c", code], cwd=tmp_path)
     assert proc.returncode == 3, proc.stderr
-    assert "need Blender" in proc.stdout and "bpy" in proc.stdout
+    assert "needs Blender" in proc.stdout and "bpy" in proc.stdout
 
 
 def _bad_scans(rod):
@@ -421,3 +421,38 @@ def test_fit_on_wrong_shape_fails_with_one_line_and_writes_nothing(rod_scan, tmp
     assert len(lines) == 1, proc.stderr
     assert "Traceback" not in proc.stderr
     assert not [p.name for p in outs if p.exists()], "outputs written for a bad scan"
+
+
+def test_triangles_with_a_repeated_vertex_keep_every_blender_output(rod_scan, tmp_path):
+    """A scan may hold a triangle with a repeated vertex (legal, the fit keeps it); Blender's mesh
+    has none. The Blender outputs label the triangles Blender kept with their own links (they
+    failed with a shape mismatch before)."""
+    d = dict(np.load(rod_scan, allow_pickle=False))
+    T = len(d["faces"])
+    d["faces"] = np.concatenate([d["faces"][:10], [[0, 0, 1]], d["faces"][10:]])
+    scan = tmp_path / "degen.npz"
+    np.savez(scan, **d)
+    out = {k: tmp_path / f"rig.{k}" for k in ("npz", "glb", "blend")}
+    _ok(_run(["-m", "artdef_addon", "fit", str(scan), "--links", str(LINKS), "-q", "-o", str(out["npz"]),
+              "--glb", str(out["glb"]), "--blend", str(out["blend"])], cwd=tmp_path))
+    gltf, binary = read_glb(out["glb"])
+    prim = gltf["meshes"][0]["primitives"][0]
+    assert accessor(gltf, binary, prim["indices"]).size == 3 * T
+    assert len(gltf["skins"][0]["joints"]) == LINKS
+    # the labels of the kept triangles, whatever Blender does to their corner order
+    from artdef_addon.cli import blender_layer
+    labels_of_kept_faces = blender_layer().labels_of_kept_faces
+    faces = np.array([[0, 1, 2], [2, 3, 4], [4, 4, 5], [1, 2, 3]])
+    labels = np.array([7, 8, 9, 10])
+    kept = np.array([[3, 1, 2], [4, 2, 3], [0, 1, 2]])
+    assert labels_of_kept_faces(kept, faces, labels).tolist() == [10, 8, 7]
+    with pytest.raises(RuntimeError, match="a triangle the scan does not"):
+        labels_of_kept_faces(np.array([[0, 1, 5]]), faces, labels)
+
+
+def test_rotation_only_on_a_greens_scan_is_refused_before_the_fit(greens_glb, tmp_path):
+    proc = _run(["-m", "artdef_addon", "fit", str(greens_glb["scan"]), "--links", str(LINKS),
+                 "--glb", str(tmp_path / "r.glb"), "--rotation-only"], cwd=tmp_path)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "--rotation-only applies to tracked scans" in lines[0], proc
+    assert "estimate" not in proc.stdout and not (tmp_path / "r.glb").exists()

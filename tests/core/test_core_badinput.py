@@ -478,3 +478,162 @@ def test_setup_on_a_full_disk_says_so_before_creating_anything(tmp_path):
         lines = run.stderr.strip().splitlines()
         assert len(lines) == 1 and "MB free on the disk of" in lines[0] and "free some space" in lines[0]
         assert sorted(os.listdir(tmp_path)) == before
+
+
+# ---------------------------------------------------------------- files a run reads, files it replaces
+def test_output_may_not_replace_a_file_of_an_input_sequence_or_gltf(rod_file, tmp_path, capsys, monkeypatch):
+    """The "not an input" check covers every file a run reads: each OBJ/PLY of a sequence's folder
+    (given as the folder, a pattern or one numbered file) and a .gltf's external buffers and images.
+    Refused with one line before any work; the files stay byte-identical."""
+    _no_fit(monkeypatch)
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for n in range(4):
+        (seq / f"pose_{n:03d}.obj").write_text(f"v {n} 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    gl = tmp_path / "gl"
+    gl.mkdir()
+    (gl / "data.bin").write_bytes(b"\0" * 64)
+    (gl / "tex a.png").write_bytes(b"png")
+    (gl / "model.gltf").write_text('{"asset": {"version": "2.0"}, "buffers": [{"uri": "data.bin", "byteLength": 64}],'
+                                   ' "images": [{"uri": "tex%20a.png"}, {"uri": "data:image/png;base64,AA=="}]}')
+    before = {p: digest(p) for p in list(seq.iterdir()) + list(gl.iterdir())}
+    for scan, out in [(seq, seq / "pose_002.obj"), (seq / "pose_000.obj", seq / "pose_003.obj"),
+                      (str(seq / "pose_*.obj"), seq / "pose_001.obj"), (gl / "model.gltf", gl / "data.bin"),
+                      (gl / "model.gltf", gl / "tex a.png")]:
+        code, _, err = run(capsys, "fit", scan, "--links", "3", "-o", out)
+        assert code == 2 and len(err) == 1 and "would overwrite the input file" in err[0], (scan, out, err)
+    code, _, err = run(capsys, "fit", rod_file, "--links", "3", "--clip", seq, "-o", seq / "pose_001.obj")
+    assert code == 2 and len(err) == 1 and "would overwrite the input file" in err[0], err
+    assert {p: digest(p) for p in before} == before
+    assert sorted(os.listdir(gl)) == ["data.bin", "model.gltf", "tex a.png"]
+
+
+def test_outputs_are_replaced_all_or_nothing(tmp_path):
+    """files.Outputs.commit: when a later rename fails, the files already replaced are put back,
+    the error names the user's file (not a temporary), and nothing temporary is left."""
+    first, second = tmp_path / "a.npz", tmp_path / "b.npz"
+    first.write_bytes(b"earlier a")
+    second.mkdir()                        # a rename onto a non-empty directory fails
+    (second / "keep").write_text("x")
+    out = files.Outputs()
+    with out:
+        files._savez(open(out.path(first), "wb"), {"x": np.arange(3)}, False)
+        with open(out.path(second), "wb") as f:
+            f.write(b"new b")
+        with pytest.raises(OSError) as info:
+            out.commit()
+    assert info.value.filename == str(second)
+    assert first.read_bytes() == b"earlier a" and out.committed == []
+    assert leftovers(tmp_path) == []
+    # a file that did not exist before is removed again
+    third = tmp_path / "c.npz"
+    out = files.Outputs()
+    with out:
+        with open(out.path(third), "wb") as f:
+            f.write(b"new c")
+        with open(out.path(second), "wb") as f:
+            f.write(b"new b")
+        with pytest.raises(OSError):
+            out.commit()
+    assert not third.exists() and leftovers(tmp_path) == []
+
+
+def test_replaced_outputs_keep_their_permissions_and_links(rod_file, tmp_path, capsys):
+    """An output replaced keeps its permission bits (a private result stays private); an output
+    path that is a symbolic link is written through: the link stays, its target is replaced."""
+    private = tmp_path / "private.npz"
+    private.write_bytes(b"old")
+    private.chmod(0o600)
+    target = tmp_path / "target.npz"
+    target.write_bytes(b"old")
+    link = tmp_path / "link.npz"
+    os.symlink(target, link)
+    for out in (private, link):
+        code, _, err = run(capsys, "fit", rod_file, "--links", "3", "-o", out, "-q")
+        assert code == 0 and err == [], err
+    assert (private.stat().st_mode & 0o777) == 0o600 and F.load_result(private).n_links == 3
+    assert os.path.islink(link) and os.readlink(link) == str(target) and F.load_result(target).n_links == 3
+    code, _, err = run(capsys, "fit", rod_file, "--links", "3", "-o", "/dev/stdout")
+    assert code == 2 and len(err) == 1 and "not a regular file" in err[0], err
+    assert leftovers(tmp_path) == []
+
+
+def test_sigterm_during_the_fit(tmp_path, interrupt_at):
+    """``kill`` / ``timeout`` / a cancelled job (SIGTERM): one line, exit 143, the earlier output
+    byte-identical and no temporary left, as for Ctrl-C."""
+    import signal
+    scan = tmp_path / "br.npz"
+    files.write_scan(scan, samples.make("branching"))
+    out = tmp_path / "out.npz"
+    out.write_bytes(b"earlier result")
+    code, err = interrupt_at([sys.executable, "-m", "artdef_addon", "fit", str(scan), "--links", "auto",
+                              "-o", str(out)], "estimate:", tmp_path, sig=signal.SIGTERM)
+    lines = err.strip().splitlines()
+    assert code == 143 and lines == ["artdef: error: terminated; no file was written or changed"], err
+    assert out.read_bytes() == b"earlier result" and leftovers(tmp_path) == []
+
+
+def test_extreme_but_accepted_scans_fit_quietly(rod, tmp_path):
+    """Fields that are one rigid translation (every residual zero) and coordinates near the
+    accepted bound: exit 0 and nothing on stderr with -q (numpy's overflow notes used to leak)."""
+    flat = S.Scan(rod.vertices, rod.faces, displacements=np.broadcast_to(
+        np.array([1.0, 2.0, 0.5]), rod.displacements.shape).copy())
+    big = S.Scan(rod.vertices * 1e55, rod.faces, displacements=rod.displacements * 1e55)
+    for name, sc, links in (("flat", flat, "auto"), ("big", big, "3")):
+        files.write_scan(tmp_path / f"{name}.npz", sc)
+        p = subprocess.run([sys.executable, "-m", "artdef_addon", "fit", str(tmp_path / f"{name}.npz"),
+                            "--links", links, "-q", "-o", str(tmp_path / f"{name}_out.npz")],
+                           env=dict(os.environ, PYTHONPATH=ROOT), capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0 and p.stderr == "", (name, p.stderr)
+
+
+def test_fields_far_beyond_the_mesh_are_refused(tmp_path, capsys):
+    """greens x probe_load is the field: each factor within bounds, the product may not be; and no
+    measurement moves an object by 1e40 of its sizes (the fit's frames overflowed at 1e90)."""
+    g = samples.make("greens_rod")
+    for name, sc, says in [
+        ("probe", S.Scan(g.vertices, g.faces, greens=g.greens, load_vertices=g.load_vertices, probe_load=1e250),
+         "greens x probe_load reaches"),
+        ("far", S.Scan(g.vertices, g.faces, greens=g.greens, load_vertices=g.load_vertices, probe_load=1e45),
+         "times the mesh's size"),
+    ]:
+        path = tmp_path / f"{name}.npz"
+        files.write_npz(path, {**files.scan_arrays(S.Scan(g.vertices, g.faces, greens=g.greens,
+                                                          load_vertices=g.load_vertices)),
+                               "probe_load": np.float64(sc.probe_load)})
+        code, _, err = run(capsys, "fit", path, "--links", "3", "-q")
+        assert code == 2 and len(err) == 1 and says in err[0] and str(path) in err[0], err
+
+
+def test_result_notes_must_be_text(result_file, tmp_path, capsys):
+    d = dict(np.load(result_file, allow_pickle=False))
+    d["notes"] = np.array(5)
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **d)
+    code, _, err = run(capsys, "info", bad)
+    assert code == 2 and len(err) == 1 and "notes must be a list of text" in err[0], err
+
+
+@pytest.mark.parametrize("argv,says", [
+    (["--frames", "0:3000000000"], "(Blender's frame numbers are 32-bit)"),
+    (["--frames=-3000000000:5"], "(Blender's frame numbers are 32-bit)"),
+    (["--frames", "-5:3"], "--frames applies to animated files and sequences"),   # read as a range
+])
+def test_frames_values_checked(rod_file, tmp_path, capsys, monkeypatch, argv, says):
+    _no_fit(monkeypatch)
+    code, _, err = run(capsys, "fit", rod_file, "--links", "3", *argv, "-o", tmp_path / "o.npz")
+    assert code == 2 and len(err) == 1 and says in err[0], err
+
+
+def test_special_files_in_a_sequence_are_refused(tmp_path):
+    """A FIFO would block the read for ever (and Ctrl-C with it); a link to a device could be endless."""
+    seq = _sequence_module()
+    (tmp_path / "pose_000.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n")
+    os.mkfifo(tmp_path / "pose_001.obj")
+    os.symlink("/dev/zero", tmp_path / "pose_002.obj")
+    for n in (1, 2):
+        with pytest.raises(seq.SequenceError, match=rf"cannot read pose_00{n}.obj: not a regular file"):
+            seq.read_mesh(str(tmp_path / f"pose_00{n}.obj"))
+    # the vertex number an OBJ face names is repeated as written (OBJ counts from 1)
+    with pytest.raises(seq.SequenceError, match=r"a face refers to vertex 9, but the file has 3 vertices"):
+        seq.read_mesh(str(tmp_path / "pose_000.obj"))
