@@ -442,15 +442,24 @@ def _on_sigterm(signum, frame):
 def main(argv=None) -> int:
     """Run the command line; returns the exit code (README, "Exit codes and guarantees"):
     0 success, 2 bad input or unusable output path (one line, nothing written), 1 a failure while
-    working or writing (one line, earlier files intact), 130 interrupted (Ctrl-C; nothing written)."""
+    working or writing (one line, earlier files intact), 130 interrupted (Ctrl-C; nothing written),
+    143 terminated (SIGTERM, handled as Ctrl-C while the command runs)."""
+    import signal
+    try:
+        old = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:              # not the main thread: the caller handles its signals
+        old = None
+    try:
+        return _main(argv)
+    finally:
+        if old is not None:         # the caller's handler again (tests and scripts call main in-process)
+            signal.signal(signal.SIGTERM, old)
+
+
+def _main(argv):
     from .files import OutputError
     from .scan import ScanError
     _committed.clear()
-    import signal
-    try:
-        signal.signal(signal.SIGTERM, _on_sigterm)
-    except ValueError:              # not the main thread: the caller handles its signals
-        pass
     import warnings
     given, argv, i = list(sys.argv[1:] if argv is None else argv), [], 0
     while i < len(given):

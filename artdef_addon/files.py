@@ -106,6 +106,9 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, name: str) -> np.nd
         if dtype.hasobject:
             raise BadFile(f"{name}: member '{key}' holds Python objects (pickled data), which are "
                           "never loaded")
+        if dtype.kind not in "biufcUS":
+            raise BadFile(f"{name}: member '{key}' holds {dtype} values; scans and results hold numbers "
+                          "and text")
         count = math.prod(shape)
         need = count * dtype.itemsize
         have = info.file_size - fp.tell()

@@ -194,6 +194,8 @@ def _ply_header(data, name):
             if parts[0] == "format":
                 fmt = parts[1]
             elif parts[0] == "element":
+                if int(parts[2]) < 0:
+                    raise SequenceError(f"{name}: the PLY header gives {parts[1]} a negative count ({parts[2]})")
                 elements.append([parts[1], int(parts[2]), []])
             elif parts[0] == "property":
                 if not elements:

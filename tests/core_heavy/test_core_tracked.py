@@ -355,8 +355,10 @@ def test_refined_skin_fits_joints_of_fully_blended_links(monkeypatch):
     truth = np.searchsorted(bones, gl)
     monkeypatch.setattr(merge, "dominant_labels", lambda *a, **k: (truth.copy(), 0))
     # and the labels stay the true ones to the end (the faces do not follow the fitted skin, which
-    # moves a few seam faces of the true labels): the joints alone are under test here
+    # moves a few seam faces of the true labels, and no link is split: on some machines' round-off
+    # a split of a finger link lowered the sampled error by its margin): the joints alone are under test
     monkeypatch.setattr(F, "_dominant_skin_labels", lambda st: None)
+    monkeypatch.setattr(F, "_split_links", lambda st: setattr(st, "splits", 0))
     diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
     within = {}
     for skin in ("seam", "refined"):
