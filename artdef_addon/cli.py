@@ -359,7 +359,10 @@ def _cmd_fit(a) -> int:
                 for line in _warnings_of(import_log, {}):
                     print(line)
         except RuntimeError as exc:
-            raise _BadInput(str(exc).splitlines()[0] if str(exc) else "cannot read the file") from None
+            line = str(exc).splitlines()[0] if str(exc) else "cannot read the file"
+            if not any(os.path.basename(p.rstrip("/")) in line for p in (a.scan, *a.clip)):
+                line = f"{a.scan}: {line}"      # an importer's own message names no file
+            raise _BadInput(line) from None
     t_load = time.perf_counter() - t0
     if a.rotation_only and sc.kind == "greens":
         raise _BadInput("--rotation-only applies to tracked scans (a Green's rig is posed by its load controls; "

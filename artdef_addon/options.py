@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 
@@ -58,14 +59,22 @@ class IntRange:
     def check(self, name: str, value) -> int:
         if isinstance(value, (bool, np.bool_)):
             raise OptionError(f"{name} must be a whole number, got {value!r}")
-        try:
-            f = float(value)
-            ok = math.isfinite(f) and f == int(f)
-        except (TypeError, ValueError, OverflowError):
-            ok = False
-        if not ok:
-            raise OptionError(f"{name} must be a whole number, got {value!r}")
-        v = int(f) if not isinstance(value, (int, np.integer)) else int(value)
+        if isinstance(value, str):
+            # text (the command line): decimal digits only, read exactly ("1e0", "3_0" and other
+            # scripts' digits are not counts; a huge count is repeated as written)
+            text = value.strip()
+            if not re.fullmatch(r"[+-]?[0-9]+", text):
+                raise OptionError(f"{name} must be a whole number, got {value!r}")
+            v = int(text)
+        else:
+            try:
+                f = float(value)
+                ok = math.isfinite(f) and f == int(f)
+            except (TypeError, ValueError, OverflowError):
+                ok = False
+            if not ok:
+                raise OptionError(f"{name} must be a whole number, got {value!r}")
+            v = int(f) if not isinstance(value, (int, np.integer)) else int(value)
         if self.lo is not None and v < self.lo:
             raise OptionError(f"{name} must be at least {self.lo}, got {v}")
         if self.hi is not None and v > self.hi:

@@ -251,7 +251,14 @@ def operator_error(err: RuntimeError) -> str:
     lines = [ln.strip() for ln in str(err).splitlines()]
     errors = [ln.split("Error: ", 1)[1].replace("Error: ", "") for ln in lines
               if "Error: " in ln and not ln.startswith("Error: Python: Traceback")]
-    return errors[-1] if errors else (lines[0] if lines else "the operator failed")
+    line = errors[-1] if errors else (lines[0] if lines else "the operator failed")
+    # the importers' pointer to their console output, which a headless run (and a user who has no
+    # console window open) does not see: the line is the message
+    for tail in (", see console for details", ", see console for detail", " (see console for details)",
+                 " (see console for detail)", ", see the console for details"):
+        if line.endswith(tail):
+            line = line[:-len(tail)]
+    return line
 
 
 class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):

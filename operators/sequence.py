@@ -494,8 +494,11 @@ def select_frames(paths, rest, start=None, end=None, step=None):
     if len(keep) < 2:
         prefix, _, ext = split_number(os.path.basename(paths[0]))
         where = os.path.join(os.path.basename(os.path.dirname(paths[0])), f"{prefix}###{ext}")
+        in_range = lo <= numbers[rest] <= hi and (numbers[rest] - lo) % step == 0
         raise SequenceError(f"{where}: no file is numbered within frames {lo}..{hi}"
                             + (f" every {step}" if step > 1 else "")
+                            + (f" but the rest pose ({os.path.basename(paths[rest])}), which is not a field"
+                               if in_range else "")
                             + f" (its files are numbered {numbers[0]}..{numbers[-1]})")
     return [paths[i] for i in keep], keep.index(rest)
 

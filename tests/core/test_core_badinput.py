@@ -456,7 +456,8 @@ def test_sequence_frames_pick_files_by_number_and_keep_the_rest(tmp_path):
     with pytest.raises(seq.SequenceError, match=r"walk/pose_###.obj: no file is numbered within "
                                                 r"frames 6..9 \(its files are numbered 0..20\)"):
         seq.select_frames(paths, 0, 6, 9, None)
-    with pytest.raises(seq.SequenceError, match=r"within frames 10..10"):
+    with pytest.raises(seq.SequenceError,
+                       match=r"within frames 10..10 but the rest pose \(pose_010.obj\), which is not a field"):
         seq.select_frames(paths, 2, 10, 10, 1)   # only the rest file itself
 
 
