@@ -321,6 +321,8 @@ def _cmd_fit(a) -> int:
     except OptionError as exc:
         raise _BadInput(f"{exc} (or 'auto')") from None
     max_links = None if a.max_links is None else _check(R["max_links"], "--max-links", a.max_links)
+    if max_links is not None and not auto:
+        raise _BadInput("--max-links bounds the link-count search: it applies to --links auto")
     if a.p_max is not None:
         _check(R["p_max"], "--p-max", a.p_max)
     if a.memory_budget is not None:
@@ -364,6 +366,9 @@ def _cmd_fit(a) -> int:
                 line = f"{a.scan}: {line}"      # an importer's own message names no file
             raise _BadInput(line) from None
     t_load = time.perf_counter() - t0
+    if a.p_max is not None and sc.kind != "greens":
+        raise _BadInput(f"--p-max applies to Green's scans (strain hardening under the probe loads); "
+                        f"{os.path.basename(a.scan)} is a tracked scan")
     if a.rotation_only and sc.kind == "greens":
         raise _BadInput("--rotation-only applies to tracked scans (a Green's rig is posed by its load controls; "
                         "in Blender, Finalize it first)")

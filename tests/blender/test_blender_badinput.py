@@ -95,3 +95,23 @@ def test_ctrl_c_in_the_blender_stage(tmp_path, marker, interrupt_at, monkeypatch
     assert (tmp_path / "out.blend").read_bytes() == b"earlier blend"
     assert sorted(os.listdir(tmp_path)) == ["br.npz", "out.blend", "out.npz", "temp"]
     assert os.listdir(temp) == []       # Blender's session folder and the add-on's repository removed
+
+
+def test_sigterm_in_the_blender_stage(tmp_path, interrupt_at, monkeypatch):
+    """``kill`` / ``timeout`` while the rig is built: the same clean-up as Ctrl-C, exit 143 (it left
+    the outputs' temporaries, Blender's session folder and the add-on's repository behind)."""
+    import signal
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(temp))
+    scan = tmp_path / "br.npz"
+    files.write_scan(scan, samples.make("branching"))
+    (tmp_path / "out.blend").write_bytes(b"earlier blend")
+    code, err = interrupt_at([sys.executable, "-m", "artdef_addon", "fit", str(scan), "--links", "11",
+                              "--blend", str(tmp_path / "out.blend"), "--glb", str(tmp_path / "out.glb")],
+                             "building the Blender outputs", tmp_path, sig=signal.SIGTERM)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 143 and lines == ["artdef: error: terminated; no file was written or changed"], err
+    assert (tmp_path / "out.blend").read_bytes() == b"earlier blend"
+    assert sorted(os.listdir(tmp_path)) == ["br.npz", "out.blend", "temp"]
+    assert os.listdir(temp) == []

@@ -312,6 +312,8 @@ def test_ctrl_c_during_the_fit(tmp_path, interrupt_at):
     (["--links", "3", "--memory-budget", "inf"], "finite"),
     (["--links", "3", "--max-links", "x"], "--max-links: invalid int value"),
     (["--links", "3", "--mode", "nope"], "invalid choice"),
+    (["--links", "3", "--max-links", "8"], "--max-links bounds the link-count search: it applies to --links auto"),
+    (["--links", "3", "--p-max", "4"], "--p-max applies to Green's scans"),
 ])
 def test_fit_numbers_range_checked(rod_file, tmp_path, capsys, monkeypatch, argv, says):
     _no_fit(monkeypatch)
