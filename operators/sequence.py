@@ -297,6 +297,8 @@ def _walk_lists(data, pos, count, ctype, itype, name, ename):
             if pos + csize > end:
                 raise SequenceError(f"{name}: the file ends inside the PLY '{ename}' element")
             n = int(np.frombuffer(data, dtype=code, count=1, offset=pos)[0])
+            if n < 0:
+                raise SequenceError(f"{name}: a PLY '{ename}' list has a negative length ({n})")
             sizes[k] = n
             starts[k] = pos + csize
             pos += csize + n * isize
@@ -324,7 +326,14 @@ def _read_ply_binary(data, body, elements, name, endian):
         if pos + nbytes > len(data):
             raise SequenceError(f"{name}: the file ends inside the PLY '{what}' element")
 
+    def negative(n, ename):
+        if n < 0:
+            raise SequenceError(f"{name}: a PLY '{ename}' list has a negative length ({n})")
+
     for ename, count, props in elements:
+        # every element takes at least its fixed properties and its lists' counts: a count the file
+        # cannot hold is refused before anything is allocated for it
+        need(count * sum(np.dtype(t if c is None else c).itemsize for _, t, c in props), ename)
         if all(p[2] is None for p in props):
             dtype = np.dtype([(f"p{i}", endian + t) for i, (_, t, _) in enumerate(props)])
             need(dtype.itemsize * count, ename)
@@ -341,6 +350,7 @@ def _read_ply_binary(data, body, elements, name, endian):
             ctype, itype = np.dtype(endian + props[0][2]), np.dtype(endian + props[0][1])
             need(ctype.itemsize, ename)
             n = int(np.frombuffer(data, dtype=ctype, count=1, offset=pos)[0])
+            negative(n, ename)
             dtype = np.dtype([("n", ctype), ("i", itype, (n,))])
             if pos + dtype.itemsize * count <= len(data):
                 table = np.frombuffer(data, dtype=dtype, count=count, offset=pos)
@@ -368,6 +378,7 @@ def _read_ply_binary(data, body, elements, name, endian):
                 cdt = np.dtype(endian + ctype)
                 need(cdt.itemsize, ename)
                 n = int(np.frombuffer(data, dtype=cdt, count=1, offset=pos)[0])
+                negative(n, ename)
                 pos += cdt.itemsize
                 idt = np.dtype(endian + t)
                 need(idt.itemsize * n, ename)
@@ -395,6 +406,8 @@ def read_ply(path):
         raise SequenceError(f"{name} has no vertices")
     if sizes is None or len(sizes) == 0:
         raise SequenceError(f"{name} has no faces")
+    if sizes.min() < 3:
+        raise SequenceError(f"{name}: a face has {int(sizes.min())} vertices (at least 3 are needed)")
     _check_indices(name, indices, len(vertices))
     return MeshFile(vertices, sizes, indices, fan_triangles(sizes, indices))
 

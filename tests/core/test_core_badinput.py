@@ -640,3 +640,26 @@ def test_special_files_in_a_sequence_are_refused(tmp_path):
     # the vertex number an OBJ face names is repeated as written (OBJ counts from 1)
     with pytest.raises(seq.SequenceError, match=r"a face refers to vertex 9, but the file has 3 vertices"):
         seq.read_mesh(str(tmp_path / "pose_000.obj"))
+
+
+def test_malformed_binary_ply_is_one_line(tmp_path):
+    """A negative list length or a face count the file cannot hold: one line naming the file (they
+    escaped as numpy's 'invalid shape' / 'Unable to allocate 7.28 TiB')."""
+    seq = _sequence_module()
+    head = ("ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            "property float z\nelement face {faces}\nproperty list {ctype} int vertex_indices\nend_header\n")
+    xyz = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype="<f4").tobytes()
+    cases = {
+        "neg_char": (head.format(faces=1, ctype="char").encode() + xyz + np.int8(-1).tobytes(), "negative length"),
+        "neg_int": (head.format(faces=2, ctype="int").encode() + xyz + np.array([3, 0, 1, 2], "<i4").tobytes()
+                    + np.int32(-2).tobytes(), "negative length"),
+        "huge": (head.format(faces=10 ** 12, ctype="uchar").encode() + xyz + bytes([3]) + np.arange(3, dtype="<i4")
+                 .tobytes(), "the file ends inside the PLY 'face' element"),
+        "two": (head.format(faces=1, ctype="uchar").encode() + xyz + bytes([2]) + np.arange(2, dtype="<i4").tobytes(),
+                "a face has 2 vertices"),
+    }
+    for key, (data, says) in cases.items():
+        path = tmp_path / f"{key}_000.ply"
+        path.write_bytes(data)
+        with pytest.raises(seq.SequenceError, match=rf"^{key}_000.ply: .*{says}"):
+            seq.read_mesh(str(path))
