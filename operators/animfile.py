@@ -21,7 +21,7 @@ import numpy as np
 from bpy.props import StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import compat, menus
+from . import compat, menus, rig
 from .ops import in_object_mode
 from .sources import FrameRange
 from ..artdef_addon import cli as _cli
@@ -294,6 +294,24 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
             except RuntimeError as err:  # its ERROR report, once more as this operator's
                 self.report({'ERROR'}, operator_error(err))
                 return {'CANCELLED'}
+        # a failure anywhere below leaves bpy.data and the scene's frames as they were: the
+        # importer's meshes, materials and actions too, not only its objects
+        before = rig.datablock_snapshot()
+        frames = (context.scene.frame_start, context.scene.frame_end)
+        try:
+            result = self._import_animated(context, path)
+        except RuntimeError as err:      # a nested operator's failure (its report) or the sampler's
+            line = operator_error(err)
+            name = os.path.basename(path)
+            self.report({'ERROR'}, line if name in line else f"{name}: {line}")
+            result = {'CANCELLED'}
+        if 'CANCELLED' in result:
+            rig.remove_new_datablocks(before)
+            for _ in range(2):           # start may not pass end: set twice
+                context.scene.frame_start, context.scene.frame_end = frames
+        return result
+
+    def _import_animated(self, context, path):
         try:
             new = import_animated(context, path)
         except (RuntimeError, ValueError) as err:
@@ -314,6 +332,7 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
                                        "(see the Info log)")
                 return {'CANCELLED'}
             scan_obj.data["artdef_source_file"] = os.path.basename(path)
+            scan_obj.data["artdef_source_path"] = os.path.abspath(path)   # Export Rig must not replace it
             for o in new:
                 o.hide_set(True)
                 o.hide_render = True
@@ -353,6 +372,7 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
             return {'CANCELLED'}
         scan_obj = context.view_layer.objects.active
         scan_obj.data["artdef_source_file"] = os.path.basename(path)
+        scan_obj.data["artdef_source_path"] = os.path.abspath(path)   # Export Rig must not replace it
         clips = _actions_moving(obj)
         if clips:  # the exported clip keeps the source clip's name
             scan_obj.data["artdef_clip"] = clips[0][0].name

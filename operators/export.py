@@ -323,14 +323,26 @@ class ARTDEF_OT_export_rig(bpy.types.Operator, ExportHelper):
 
     def execute(self, context):
         path = bpy.path.abspath(self.filepath)
+        if not os.path.basename(path) or os.path.isdir(path):
+            self.report({'ERROR'}, f"Export Rig: give a file name, not a folder ('{self.filepath}')")
+            return {'CANCELLED'}
         fmt = format_for_path(path)     # the file name's extension wins
         if fmt is None:
             fmt = self.export_format
             path += EXTENSIONS[fmt]
+        folder = os.path.dirname(path) or "."
+        if os.path.exists(folder) and not os.path.isdir(folder):
+            self.report({'ERROR'}, f"Export Rig: {folder} is a file, not a folder")
+            return {'CANCELLED'}
+        source = context.active_object.data.get("artdef_source_path") if context.active_object else None
+        if source and os.path.exists(path) and _same_file(path, source):
+            self.report({'ERROR'}, f"Export Rig: {os.path.basename(path)} is the file the scan was imported "
+                                   "from; choose another name")
+            return {'CANCELLED'}
         try:
             written, left_out = export_rig(context, context.active_object, path, fmt,
                                            self.debug_attributes)
-        except RuntimeError as err:
+        except (RuntimeError, OSError) as err:
             self.report({'ERROR'}, f"Export failed: {err}")
             return {'CANCELLED'}
         msg = f"Exported the rig to {written}"
@@ -338,6 +350,13 @@ class ARTDEF_OT_export_rig(bpy.types.Operator, ExportHelper):
             msg += f"; left out {', '.join(left_out[:4])}{', ...' if len(left_out) > 4 else ''}"
         self.report({'INFO'}, msg)
         return {'FINISHED'}
+
+
+def _same_file(a, b) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 def menu_export(self, context):

@@ -49,13 +49,19 @@ def has_scan(mesh):
 
 
 def scan_info(mesh):
-    """Cheap summary for the UI (reads only custom properties)."""
+    """Cheap summary for the UI (reads only custom properties; a damaged one reads as its default,
+    so the panel still draws: reading the scan itself reports the damage)."""
+    def number(key, kind, default):
+        try:
+            return kind(mesh.get(key, default))
+        except (TypeError, ValueError):
+            return default
     return {
-        "kind": mesh.get("artdef_kind", ""),
-        "fields": int(mesh.get("artdef_n_fields", 0)),
-        "loads": int(mesh.get("artdef_n_loads", 0)),
-        "support": int(mesh.get("artdef_n_support", 0)),
-        "probe_load": float(mesh.get("artdef_probe_load", 1.0)),
+        "kind": str(mesh.get("artdef_kind", "")),
+        "fields": number("artdef_n_fields", int, 0),
+        "loads": number("artdef_n_loads", int, 0),
+        "support": number("artdef_n_support", int, 0),
+        "probe_load": number("artdef_probe_load", float, 1.0),
     }
 
 
@@ -307,7 +313,11 @@ def read_scan(obj):
         raise _scan.ScanError(
             f"'{obj.name}' carries no ArtDef scan: import a scan or use Fields from Shape Keys")
     kind = mesh["artdef_kind"]
-    n_fields = int(mesh.get("artdef_n_fields", -1))
+    try:
+        n_fields = int(mesh.get("artdef_n_fields", -1))
+    except (TypeError, ValueError):
+        raise _scan.ScanError(f"the mesh's scan record is damaged: its field count is "
+                              f"{mesh.get('artdef_n_fields')!r}; import the scan again") from None
     n = len(mesh.vertices)
     stored = {}
     for attr in mesh.attributes:

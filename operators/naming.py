@@ -124,6 +124,9 @@ def source_names(arm, source):
 def rename_bones(mesh_obj, arm, mapping):
     """Rename bones ``old -> new`` (vertex groups, animation, constraints and the
     fit's records follow).  Two passes, so names may swap."""
+    # Blender keeps at most 63 bytes of a name (UTF-8): cut there, on a character boundary, so the
+    # fit's records hold the names Blender shows
+    mapping = {o: n.encode("utf-8")[:63].decode("utf-8", errors="ignore") for o, n in mapping.items()}
     mapping = {o: n for o, n in mapping.items() if o != n and o in arm.data.bones}
     if not mapping:
         return {}
@@ -138,6 +141,13 @@ def rename_bones(mesh_obj, arm, mapping):
     clash = [n for n in full.values() if n in taken]
     if clash:
         raise ValueError(f"bone name {clash[0]!r} is already used")
+    # a bone deforms through the mesh's vertex group of its name: one of the user's own groups
+    # must not be taken over (nor removed with the rig later)
+    ours = {item.name for item in mesh_obj.artdef.groups}
+    users = [n for n in mapping.values() if n in mesh_obj.vertex_groups and n not in ours]
+    if users:
+        raise ValueError(f"{users[0]!r} is a vertex group of the mesh that the fit did not make; "
+                         "choose another name")
     temp = {}
     for i, old in enumerate(full):
         arm.data.bones[old].name = f"__artdef_tmp_{i}"

@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """ArtDef operators (public scripting API: ``bpy.ops.artdef.*``)."""
 
+import os
 import threading
 import time
 import traceback
@@ -108,13 +109,14 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
     def execute(self, context):
         t0 = time.perf_counter()
         try:
-            obj, scan = io.import_scan_file(context, self.filepath)
+            obj, scan = io.import_scan_file(context, bpy.path.abspath(self.filepath))
         except _scan.ScanError as err:
             self.report({'ERROR'}, f"Not a valid ArtDef scan: {err}")
             return {'CANCELLED'}
         except (OSError, ValueError) as err:
             self.report({'ERROR'}, f"Could not read '{self.filepath}': {err}")
             return {'CANCELLED'}
+        obj.data["artdef_source_path"] = os.path.abspath(bpy.path.abspath(self.filepath))   # never exported over
         loads = 0 if scan.load_vertices is None else len(scan.load_vertices)
         repeated = int(np.count_nonzero(io.repeated_vertex_faces(scan.faces)))
         if repeated:
@@ -462,6 +464,10 @@ class _WorkerModal:
         self._end(context)
 
 
+#: Blender's last scene frame (MAXFRAME)
+MAX_FRAME = 1048574
+
+
 class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
     """Fit an articulated rig to the active mesh's scan: vertex groups, an armature, residual shape keys, and load controls (Green's scans) or a replay action (tracked scans). Pseudo mode fits each load point separately and builds the rig of the load point chosen by Load Index. Esc cancels without changing the scene"""
     bl_idname = "artdef.fit"
@@ -502,6 +508,13 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
             self.report({'ERROR'}, str(err))
             return None
         scan = stored.scan
+        # the replay (a field every Frames per Field) or the load sweep (two steps a load component)
+        # must end within Blender's frames: checked before the job, so the old rig stays
+        last = self.frames_per_field * (2 * scan.n_fields if scan.kind == "greens" else scan.n_fields + 1)
+        if last > MAX_FRAME:
+            self.report({'ERROR'}, f"Frames per Field {self.frames_per_field}: the rig's animation would end at "
+                                   f"frame {last:,}, past Blender's last frame {MAX_FRAME:,}")
+            return None
         if options.mode == "pseudo":
             if scan.kind != "greens":
                 self.report({'ERROR'}, "Pseudo mode needs a Green's scan (with load points)")

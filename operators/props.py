@@ -19,6 +19,10 @@ def enum_id(value: str) -> str:
     return value.upper()
 
 
+#: how far above an exclusive lower bound a Blender property's minimum sits
+EXCLUSIVE_STEP = 1e-6
+
+
 def _option_property(default, opt):
     """A ``bpy.props`` property for one :class:`FitOptions` field, from its declaration."""
     description = opt.description + (f" [{opt.unit}]" if opt.unit else "")
@@ -30,7 +34,9 @@ def _option_property(default, opt):
         description += "; 0 turns it off"
         bounds["min"] = 0.0
     elif opt.min is not None:
-        bounds["min"] = opt.min
+        # a bound the value may not reach (memory budget > 0): Blender stops just above it, so that
+        # no value the panel accepts fails the options' check
+        bounds["min"] = opt.min + EXCLUSIVE_STEP if opt.min_exclusive else opt.min
     if opt.type is int:
         return IntProperty(name=opt.label, default=int(default), description=description,
                            **{k: int(v) for k, v in bounds.items()})

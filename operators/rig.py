@@ -343,7 +343,9 @@ def clear_rig(obj, scene=None):
     mod = obj.modifiers.get(MODIFIER_NAME)
     if mod is not None:
         obj.modifiers.remove(mod)
-    if arm is not None and arm.get("artdef_rig"):
+    owner = arm.get("artdef_owner") if arm is not None else None
+    if arm is not None and arm.get("artdef_rig") and (owner is None or owner == obj):
+        # a duplicate of a fitted mesh points at the original's rig: that one stays
         for child in list(arm.children):
             if child.get("artdef_load") is not None:
                 _remove_object(child)
@@ -513,6 +515,7 @@ def _make_armature(context, obj, result, helpers=False):
     arm_data = bpy.data.armatures.new(name)
     arm = bpy.data.objects.new(name, arm_data)
     arm["artdef_rig"] = True
+    arm["artdef_owner"] = obj       # the mesh it was built for (a duplicate of the mesh shares the pointer)
     arm["artdef_source"] = obj.name
     for coll in obj.users_collection:
         coll.objects.link(arm)

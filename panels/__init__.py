@@ -184,11 +184,17 @@ def _gb(nbytes):
 def _draw_estimate(layout, mesh, st):
     """What a fit with these settings costs, from the counts only (no fit):
     memory, time and the method (full, or reduced on about N patches)."""
-    info = io.scan_info(mesh)
-    auto = bool(st.auto_links)
-    est, _ = ops.method_plan(len(mesh.loop_triangles), info["fields"], len(mesh.vertices),
-                             info["kind"], st.reduce, st.memory_budget, links=st.links, auto=auto,
-                             max_links=st.max_links)
+    try:
+        info = io.scan_info(mesh)
+        auto = bool(st.auto_links)
+        est, _ = ops.method_plan(len(mesh.loop_triangles), info["fields"], len(mesh.vertices),
+                                 info["kind"], st.reduce, st.memory_budget, links=st.links, auto=auto,
+                                 max_links=st.max_links)
+    except (ValueError, TypeError) as err:     # OptionsError, a damaged scan property: a line, not a raise
+        row = layout.row()
+        row.alert = True
+        row.label(text=f"No estimate: {err}", icon='ERROR')
+        return
     col = layout.column(align=True)
     col.scale_y = 0.8
     col.label(text=f"Estimate: about {_gb(est.memory_bytes)} GB, "

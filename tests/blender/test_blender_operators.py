@@ -1429,7 +1429,11 @@ def test_fit_properties_are_the_cores_declaration(pkg):
                 assert p.default == default.upper()
             else:
                 assert p.default == pytest.approx(0 if default is None else default, rel=1e-6), name
-                assert p.hard_min == pytest.approx(0 if opt.optional else opt.min, rel=1e-6), name
+                # an exclusive bound (memory budget > 0): Blender's minimum sits just above it
+                want = 0 if opt.optional else opt.min + (1e-6 if opt.min_exclusive else 0)
+                assert p.hard_min == pytest.approx(want, rel=1e-6, abs=1e-9), name
+                if opt.min_exclusive and not opt.optional:
+                    assert p.hard_min > opt.min, name
                 if opt.max is not None:
                     assert p.hard_max == pytest.approx(opt.max, rel=1e-6), name
     st = bpy.types.Object.bl_rna.properties["artdef"].fixed_type.properties
@@ -1617,3 +1621,64 @@ def test_fit_validates_the_scan_once(clean_scene, pkg, sample_files, monkeypatch
     assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
     assert obj.artdef.has_fit
     assert len(calls) == 1
+
+
+def test_fitting_a_duplicate_keeps_the_originals_rig(clean_scene, sample_files):
+    """A duplicated fitted mesh points at the original's armature: fitting or clearing the copy
+    replaces only the copy's own rig."""
+    obj = import_scan(sample_files["rod"])
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    arm = obj.artdef.rig
+    assert bpy.ops.object.duplicate() == {'FINISHED'}
+    copy = bpy.context.active_object
+    assert copy != obj and copy.artdef.rig == arm
+    assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert bpy.data.objects.get(arm.name) is not None and obj.parent == arm
+    assert obj.modifiers["ArtDef Armature"].object == arm
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    assert obj.artdef.rig == arm and copy.artdef.rig not in (None, arm)
+
+
+def test_name_bones_keeps_the_users_vertex_groups(clean_scene, sample_files):
+    obj = import_scan(sample_files["rod"])
+    obj.vertex_groups.new(name="user_vg")
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    with pytest.raises(RuntimeError, match="'user_vg' is a vertex group of the mesh that the fit did not make"):
+        bpy.ops.artdef.name_bones(scheme='ONE', bone="artdef_link_00", new_name="user_vg")
+    assert sorted(g.name for g in obj.vertex_groups) == ["artdef_link_00", "artdef_link_01", "artdef_link_02",
+                                                         "user_vg"]
+    # a long non-ASCII name: cut at Blender's 63 bytes, the record holds the name Blender keeps
+    assert bpy.ops.artdef.name_bones(scheme='ONE', bone="artdef_link_01", new_name="é" * 40) == {'FINISHED'}
+    kept = "é" * 31
+    assert kept in obj.vertex_groups and kept in {item.name for item in obj.artdef.groups}
+    assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert [g.name for g in obj.vertex_groups] == ["user_vg"]
+
+
+def test_frames_per_field_past_blenders_last_frame_keeps_the_rig(clean_scene, sample_files):
+    obj = import_scan(sample_files["rod"])
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    arm = obj.artdef.rig
+    counts = {name: len(getattr(bpy.data, name)) for name in ("objects", "armatures", "actions")}
+    with pytest.raises(RuntimeError, match="past Blender's last frame"):
+        bpy.ops.artdef.fit(links=3, frames_per_field=10 ** 6)
+    assert {name: len(getattr(bpy.data, name)) for name in counts} == counts
+    assert obj.artdef.rig == arm and len(obj.vertex_groups) == 3
+
+
+def test_import_scan_takes_blender_relative_paths(clean_scene, sample_files, tmp_path):
+    import shutil
+    shutil.copy(sample_files["rod"], tmp_path / "rod.npz")
+    assert bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "s.blend")) == {'FINISHED'}
+    assert bpy.ops.artdef.import_scan(filepath="//rod.npz") == {'FINISHED'}
+
+
+def test_panel_draws_with_an_unusable_memory_budget(clean_scene, sample_files):
+    obj = import_scan(sample_files["rod"])
+    obj.artdef.memory_budget = 0.0          # Blender keeps it at the declared minimum (above 0)
+    assert obj.artdef.memory_budget > 0
+    assert any(e[0] == "label" and str(e[1]).startswith("Estimate:") for e in draw_panel())
+    obj.data["artdef_n_fields"] = "many"    # a damaged scan property: the panel still draws
+    assert ("operator", "artdef.fit", True) in draw_panel()
+    with pytest.raises(RuntimeError, match="field"):   # the fit reads the scan and says what is wrong
+        bpy.ops.artdef.fit(links=3)

@@ -816,3 +816,42 @@ def test_several_sequences_fit_one_rig_with_one_clip_each(clean_scene, tmp_path)
                  "--links", "3", "--glb", str(bad)], cwd=tmp_path)
     assert proc.returncode == 2 and "another rest shape" in proc.stderr, proc.stderr[-1500:]
     assert not bad.exists()
+
+
+def test_export_rig_never_replaces_the_file_the_scan_came_from(installed_addon, source_glb, clean_scene, tmp_path):
+    """Export Rig to the animated file the scan was sampled from: one line, the file unchanged;
+    a folder or a path through a file: one line, nothing written."""
+    import shutil
+    src = tmp_path / "walk.glb"
+    shutil.copy(source_glb, src)
+    before = src.read_bytes()
+    assert bpy.ops.artdef.fields_from_file(filepath=str(src)) == {'FINISHED'}
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    with pytest.raises(RuntimeError, match="walk.glb is the file the scan was imported from"):
+        bpy.ops.artdef.export_rig(filepath=str(src))
+    assert src.read_bytes() == before
+    with pytest.raises(RuntimeError, match="give a file name, not a folder"):
+        bpy.ops.artdef.export_rig(filepath=str(tmp_path) + os.sep)
+    with pytest.raises(RuntimeError, match="is a file, not a folder"):
+        bpy.ops.artdef.export_rig(filepath=str(src / "out.glb"))
+    assert sorted(os.listdir(tmp_path)) == ["walk.glb"]
+
+
+def test_a_failed_import_of_an_animated_file_leaves_nothing(installed_addon, clean_scene, tmp_path):
+    """A file whose mesh does not deform (only the object moves): one line naming the file, and
+    every datablock the importer made (meshes, materials, actions) removed, the frames as they were."""
+    bpy.ops.mesh.primitive_cube_add()
+    cube = bpy.context.active_object
+    for f, x in ((1, 0.0), (20, 3.0)):
+        cube.location.x = x
+        cube.keyframe_insert("location", frame=f)
+    still = tmp_path / "still.glb"
+    assert bpy.ops.export_scene.gltf(filepath=str(still), export_format='GLB') == {'FINISHED'}
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 5, 77
+    counts = {name: len(getattr(bpy.data, name)) for name in ("objects", "meshes", "materials", "actions")}
+    with pytest.raises(RuntimeError, match="still.glb"):
+        bpy.ops.artdef.fields_from_file(filepath=str(still))
+    assert {name: len(getattr(bpy.data, name)) for name in counts} == counts
+    assert (scene.frame_start, scene.frame_end) == (5, 77)
