@@ -213,7 +213,8 @@ def input_files(path: str) -> list:
             names = os.listdir(folder)
         except OSError:
             names = []
-        out += [os.path.join(folder, n) for n in names if os.path.splitext(n)[1].lower() in SEQUENCE_EXTENSIONS]
+        out += [os.path.join(folder, n) for n in names
+                if os.path.splitext(n)[1].lower() in SEQUENCE_EXTENSIONS]
     elif path.lower().endswith(".gltf") and os.path.isfile(path):
         import json
         from urllib.parse import unquote
@@ -292,8 +293,8 @@ def _cmd_fit(a) -> int:
     t0 = time.perf_counter()
     blender = bool(a.blend or a.glb or a.fbx or a.png)
     # every output checked before any work: writable directory, not an input, not each other
-    files.check_outputs([f for p in (a.scan, *a.clip) for f in input_files(p)], {"-o": a.output, "--blend": a.blend, "--glb": a.glb,
-                                            "--fbx": a.fbx, "--png": a.png})
+    read = [f for p in (a.scan, *a.clip) for f in input_files(p)]
+    files.check_outputs(read, {"-o": a.output, "--blend": a.blend, "--glb": a.glb, "--fbx": a.fbx, "--png": a.png})
     if a.rotation_only and not (a.blend or a.glb or a.fbx):
         raise _BadInput("--rotation-only applies to the rig: add --blend, --glb or --fbx")
     kind = input_kind(a.scan)

@@ -366,8 +366,8 @@ class Outputs:
         All or nothing: each file replaced is first kept as a hard link in its temporary
         directory, so that when a later rename fails (a file another user owns in a sticky
         directory, an immutable file) the ones already replaced are put back and the error names
-        the user's file. SIGINT is held off while renaming, so a Ctrl-C never leaves the set half
-        replaced. The replaced files keep their permission bits. :attr:`committed` lists the
+        the user's file. SIGINT and SIGTERM are held off while renaming (and delivered after), so
+        neither leaves the set half replaced. The replaced files keep their permission bits. :attr:`committed` lists the
         finals replaced (a file whose old version could not be kept, on a file system without
         hard links, stays listed after a failure)."""
         for tmp, final, _ in self._pending:
