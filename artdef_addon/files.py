@@ -326,6 +326,44 @@ def check_outputs(inputs, outputs: dict) -> None:
                 raise OutputError(f"{o2} and {o1} name the same file {p1}")
 
 
+#: the hidden folder next to an output that holds its temporary (``.artdef-tmp-<pid>-<random>``)
+TEMP_PREFIX = ".artdef-tmp-"
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:             # another user's process, or no way to ask: it may be running
+        return True
+    return True
+
+
+def remove_stale(folder: str, prefix: str) -> list:
+    """Remove the folders ``<prefix><pid>-*`` in ``folder`` whose process no longer runs: what a
+    process killed with SIGKILL (or by the out-of-memory killer, which no clean-up survives) left
+    behind. POSIX only (on Windows ``os.kill`` would end the process it asks about); folders of a
+    running process, of this one, or named without a process number are left alone. Returns the
+    folders removed."""
+    if os.name != "posix":
+        return []
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return []
+    gone = []
+    for name in names:
+        pid = name[len(prefix):].split("-", 1)[0] if name.startswith(prefix) else ""
+        if not pid.isdigit() or int(pid) == os.getpid() or _running(int(pid)):
+            continue
+        path = os.path.join(folder, name)
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path, ignore_errors=True)
+            gone.append(path)
+    return gone
+
+
 class Outputs:
     """Files written all-or-nothing: :meth:`path` gives a temporary path with the final file name
     inside a hidden directory next to the target; :meth:`commit` fsyncs and renames every one
@@ -348,7 +386,9 @@ class Outputs:
         final = os.fspath(final)
         if os.path.islink(final):
             final = os.path.realpath(final)
-        tmpdir = tempfile.mkdtemp(prefix=".artdef-tmp-", dir=os.path.dirname(final) or ".")
+        folder = os.path.dirname(final) or "."
+        remove_stale(folder, TEMP_PREFIX)
+        tmpdir = tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}{os.getpid()}-", dir=folder)
         tmp = os.path.join(tmpdir, os.path.basename(final))
         self._pending.append((tmp, final, tmpdir))
         return tmp

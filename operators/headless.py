@@ -128,7 +128,12 @@ def ensure_registered() -> str:
     repos = bpy.context.preferences.extensions.repos
     repo = next((r for r in repos if r.module == _HEADLESS_REPO), None)
     if repo is None:
-        repo_dir = tempfile.mkdtemp(prefix="artdef-headless-repo-")
+        try:    # inside the installed extension, or loaded from a checkout next to artdef_addon/
+            from ..artdef_addon.files import remove_stale  # noqa: PLC0415
+        except ImportError:
+            from artdef_addon.files import remove_stale  # noqa: PLC0415
+        remove_stale(tempfile.gettempdir(), "artdef-headless-repo-")   # of a killed earlier run
+        repo_dir = tempfile.mkdtemp(prefix=f"artdef-headless-repo-{os.getpid()}-")
         link = os.path.join(repo_dir, EXT_ID)
         os.symlink(root, link, target_is_directory=True)
 

@@ -343,6 +343,13 @@ def test_a_command_leaves_nothing_in_the_temporary_folder(rod_scan, tmp_path):
     add-on's temporary repository. Each fit writing a .glb used to leave one behind."""
     temp = tmp_path / "temp"
     temp.mkdir()
+    # what a run killed with SIGKILL left (the add-on's repository, with its link to the source):
+    # removed by the next run, since its process no longer runs
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = temp / f"artdef-headless-repo-{dead.pid}-x1"
+    stale.mkdir()
+    os.symlink(REPO_ROOT, stale / "artdef", target_is_directory=True)
     env = dict(os.environ, TMPDIR=str(temp), PYTHONPATH=str(REPO_ROOT))
     proc = subprocess.run([sys.executable, "-m", "artdef_addon", "fit", str(rod_scan), "--links", str(LINKS),
                            "--glb", str(tmp_path / "rod.glb")], cwd=tmp_path, env=env,
@@ -350,6 +357,7 @@ def test_a_command_leaves_nothing_in_the_temporary_folder(rod_scan, tmp_path):
     _ok(proc)
     assert (tmp_path / "rod.glb").is_file()
     assert os.listdir(temp) == []
+    assert (REPO_ROOT / "artdef_addon" / "files.py").is_file()     # the link's target untouched
 
 
 def test_blend_holds_the_fit_of_the_npz_with_every_option(rod_scan, tmp_path):

@@ -663,3 +663,21 @@ def test_malformed_binary_ply_is_one_line(tmp_path):
         path.write_bytes(data)
         with pytest.raises(seq.SequenceError, match=rf"^{key}_000.ply: .*{says}"):
             seq.read_mesh(str(path))
+
+
+def test_a_killed_runs_temporaries_are_removed_by_the_next(rod_file, tmp_path, capsys):
+    """SIGKILL (or the out-of-memory killer) leaves an output's hidden temporary folder: the next
+    command writing there removes those of processes that no longer run, and no other."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".artdef-tmp-{dead.pid}-x1"
+    stale.mkdir()
+    (stale / "out.npz").write_bytes(b"partial")
+    alive = tmp_path / f".artdef-tmp-{os.getppid()}-x2"       # a running process's
+    alive.mkdir()
+    legacy = tmp_path / ".artdef-tmp-abcdef"                    # no process number: left alone
+    legacy.mkdir()
+    code, _, err = run(capsys, "fit", rod_file, "--links", "3", "-o", tmp_path / "out.npz", "-q")
+    assert code == 0 and err == []
+    assert not stale.exists() and alive.is_dir() and legacy.is_dir()
+    assert F.load_result(tmp_path / "out.npz").n_links == 3
