@@ -206,13 +206,23 @@ class _Interrupts:
     stages, raises KeyboardInterrupt in plain Python, where the caller removes its temporaries.
     """
 
+    #: SIGTERM (``kill``, ``timeout``) too: raised inside an operator it was swallowed by Blender's
+    #: report and the command went on to write its outputs
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
     def __init__(self):
         self.flag = threading.Event()
         self._old = None
+        self._got = []
 
     def __enter__(self):
+        def caught(signum, frame):
+            self._got.append(signum)
+            self.flag.set()
+        self._old = {}
         try:
-            self._old = signal.signal(signal.SIGINT, lambda *a: self.flag.set())
+            for sig in self.SIGNALS:
+                self._old[sig] = signal.signal(sig, caught)
         except ValueError:      # not the main thread: leave signals alone
             self._old = None
         return self
@@ -222,11 +232,15 @@ class _Interrupts:
 
     def check(self):
         if self.flag.is_set():
+            term = self._old and self._old.get(signal.SIGTERM)
+            if signal.SIGTERM in self._got and callable(term):
+                term(signal.SIGTERM, None)      # the caller's own handling (the command line: exit 143)
             raise KeyboardInterrupt
 
     def __exit__(self, *exc):
         if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+            for sig, handler in self._old.items():
+                signal.signal(sig, handler)
         return False
 
 
