@@ -316,8 +316,10 @@ def read_scan(obj):
     try:
         n_fields = int(mesh.get("artdef_n_fields", -1))
     except (TypeError, ValueError):
-        raise _scan.ScanError(f"the mesh's scan record is damaged: its field count is "
-                              f"{mesh.get('artdef_n_fields')!r}; import the scan again") from None
+        n_fields = None
+    if n_fields is None or n_fields < 1:
+        raise _scan.ScanError(f"'{obj.name}': the scan record is damaged: its field count is "
+                              f"{mesh.get('artdef_n_fields', 'missing')!r}; import the scan again")
     n = len(mesh.vertices)
     stored = {}
     for attr in mesh.attributes:
