@@ -322,8 +322,6 @@ def _cmd_fit(a) -> int:
     except OptionError as exc:
         raise _BadInput(f"{exc} (or 'auto')") from None
     max_links = None if a.max_links is None else _check(R["max_links"], "--max-links", a.max_links)
-    if max_links is not None and not auto:
-        raise _BadInput("--max-links bounds the link-count search: it applies to --links auto")
     if a.p_max is not None:
         _check(R["p_max"], "--p-max", a.p_max)
     if a.memory_budget is not None:
@@ -367,9 +365,13 @@ def _cmd_fit(a) -> int:
                 line = f"{a.scan}: {line}"      # an importer's own message names no file
             raise _BadInput(line) from None
     t_load = time.perf_counter() - t0
-    if a.p_max is not None and sc.kind != "greens":
-        raise _BadInput(f"--p-max applies to Green's scans (strain hardening under the probe loads); "
-                        f"{os.path.basename(a.scan)} is a tracked scan")
+    if not a.quiet:
+        # settings this fit does not use are kept in the result (one settings record for every
+        # layer), and said to have no effect here rather than dropped silently
+        if a.max_links is not None and not auto:
+            print("note: --max-links bounds the link-count search; it has no effect with a fixed --links")
+        if a.p_max is not None and sc.kind != "greens":
+            print("note: --p-max (strain hardening under the probe loads) has no effect on a tracked scan")
     if a.rotation_only and sc.kind == "greens":
         raise _BadInput("--rotation-only applies to tracked scans (a Green's rig is posed by its load controls; "
                         "in Blender, Finalize it first)")

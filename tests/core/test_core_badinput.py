@@ -312,8 +312,6 @@ def test_ctrl_c_during_the_fit(tmp_path, interrupt_at):
     (["--links", "3", "--memory-budget", "inf"], "finite"),
     (["--links", "3", "--max-links", "x"], "--max-links: invalid int value"),
     (["--links", "3", "--mode", "nope"], "invalid choice"),
-    (["--links", "3", "--max-links", "8"], "--max-links bounds the link-count search: it applies to --links auto"),
-    (["--links", "3", "--p-max", "4"], "--p-max applies to Green's scans"),
 ])
 def test_fit_numbers_range_checked(rod_file, tmp_path, capsys, monkeypatch, argv, says):
     _no_fit(monkeypatch)
@@ -681,3 +679,16 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next(rod_file, tmp_path, c
     assert code == 0 and err == []
     assert not stale.exists() and alive.is_dir() and legacy.is_dir()
     assert F.load_result(tmp_path / "out.npz").n_links == 3
+
+
+def test_settings_without_effect_are_said_not_dropped(rod_file, tmp_path, capsys):
+    """--max-links with a fixed count and --p-max on a tracked scan are kept in the result (the one
+    settings record the API and Blender share) and the command says they have no effect here."""
+    code, out, err = run(capsys, "fit", rod_file, "--links", "3", "--max-links", "8", "--p-max", "4",
+                         "-o", tmp_path / "o.npz")
+    assert code == 0 and err == []
+    assert "note: --max-links bounds the link-count search; it has no effect with a fixed --links" in out
+    assert "note: --p-max (strain hardening under the probe loads) has no effect on a tracked scan" in out
+    assert F.load_result(tmp_path / "o.npz").p_max == 4.0
+    code, out, err = run(capsys, "fit", rod_file, "--links", "3", "--p-max", "4", "-q", "-o", tmp_path / "q.npz")
+    assert code == 0 and out == "" and err == []
