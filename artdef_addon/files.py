@@ -263,7 +263,9 @@ def read_result_arrays(path) -> dict:
 OUTPUT_EXTENSIONS = {"--blend": ".blend", "--glb": ".glb", "--fbx": ".fbx", "--png": ".png"}
 
 
-def _same(a: str, b: str) -> bool:
+def same_file(a: str, b: str) -> bool:
+    """True when the paths ``a`` and ``b`` name one file (by ``realpath``, or ``os.path.samefile`` for
+    hard links); False when either cannot be examined."""
     if os.path.realpath(a) == os.path.realpath(b):
         return True
     try:
@@ -318,11 +320,11 @@ def check_outputs(inputs, outputs: dict) -> None:
         if not os.access(d, os.W_OK | os.X_OK):
             raise OutputError(f"{opt} {p}: the directory {d} is not writable")
         for q in inputs:
-            if q is not None and os.path.exists(p) and _same(p, os.fspath(q)):
+            if q is not None and os.path.exists(p) and same_file(p, os.fspath(q)):
                 raise OutputError(f"{opt} {p}: would overwrite the input file; choose another output name")
     for i, (o1, p1) in enumerate(given):
         for o2, p2 in given[:i]:
-            if os.path.realpath(p1) == os.path.realpath(p2) or (os.path.exists(p1) and _same(p1, p2)):
+            if os.path.realpath(p1) == os.path.realpath(p2) or (os.path.exists(p1) and same_file(p1, p2)):
                 raise OutputError(f"{o2} and {o1} name the same file {p1}")
 
 

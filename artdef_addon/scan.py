@@ -107,6 +107,11 @@ class Scan:
         return self.displacements
 
 
+def _magnitude(a: np.ndarray) -> float:
+    """max |a| (0 for an empty array) from the extremes, without the temporary of ``np.abs(a)``."""
+    return max(abs(float(a.max())), abs(float(a.min()))) if a.size else 0.0
+
+
 def _as_float(name, a, ndim):
     a = np.asarray(a)
     if a.dtype.kind not in "fiu":
@@ -212,13 +217,12 @@ def _check_scan(scan: Scan) -> Scan:
     p = float(np.asarray(scan.probe_load))
     if not np.isfinite(p) or p <= 0:
         raise ScanError(f"probe_load must be a positive number, got {p}")
-    if has_g:
-        # the fields are greens x probe_load: each within the bound, their product may not be
-        top = float(np.abs(g).max()) * p if g.size else 0.0
-        if p > MAX_MAGNITUDE or not top <= MAX_MAGNITUDE:
-            raise ScanError(f"greens x probe_load reaches {top:.3g} (probe_load {p:.3g}); the fields must stay "
-                            f"below {MAX_MAGNITUDE:.0e} in magnitude")
-    fields_top = (float(np.abs(g).max()) * p if g.size else 0.0) if has_g else float(np.abs(d).max())
+    # the largest displacement (the fields are greens x probe_load), without a copy of the fields
+    fields_top = _magnitude(g) * p if has_g else _magnitude(d)
+    if has_g and (p > MAX_MAGNITUDE or not fields_top <= MAX_MAGNITUDE):
+        # each factor within the bound, their product may not be
+        raise ScanError(f"greens x probe_load reaches {fields_top:.3g} (probe_load {p:.3g}); the fields must stay "
+                        f"below {MAX_MAGNITUDE:.0e} in magnitude")
     size = float(np.linalg.norm(np.ptp(v, axis=0)))
     if fields_top > MAX_RELATIVE_FIELD * size:
         raise ScanError(f"the fields move vertices by up to {fields_top:.3g}, over {MAX_RELATIVE_FIELD:.0e} times the "

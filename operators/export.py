@@ -33,6 +33,7 @@ from bpy_extras.io_utils import ExportHelper
 
 from . import compat, menus, rig
 from .ops import in_object_mode
+from ..artdef_addon.files import same_file
 
 FORMATS = (('GLB', "glTF Binary (.glb)", "One .glb file"),
            ('GLTF_SEPARATE', "glTF Separate (.gltf + .bin)", "A .gltf with its .bin next to it"),
@@ -335,7 +336,7 @@ class ARTDEF_OT_export_rig(bpy.types.Operator, ExportHelper):
             self.report({'ERROR'}, f"Export Rig: {folder} is a file, not a folder")
             return {'CANCELLED'}
         source = context.active_object.data.get("artdef_source_path") if context.active_object else None
-        if source and os.path.exists(path) and _same_file(path, source):
+        if source and os.path.exists(path) and same_file(path, source):
             self.report({'ERROR'}, f"Export Rig: {os.path.basename(path)} is the file the scan was imported "
                                    "from; choose another name")
             return {'CANCELLED'}
@@ -350,13 +351,6 @@ class ARTDEF_OT_export_rig(bpy.types.Operator, ExportHelper):
             msg += f"; left out {', '.join(left_out[:4])}{', ...' if len(left_out) > 4 else ''}"
         self.report({'INFO'}, msg)
         return {'FINISHED'}
-
-
-def _same_file(a, b) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
 
 
 def menu_export(self, context):

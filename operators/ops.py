@@ -108,15 +108,16 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
 
     def execute(self, context):
         t0 = time.perf_counter()
+        path = os.path.abspath(bpy.path.abspath(self.filepath))    # '//scan.npz': next to the .blend
         try:
-            obj, scan = io.import_scan_file(context, bpy.path.abspath(self.filepath))
+            obj, scan = io.import_scan_file(context, path)
         except _scan.ScanError as err:
             self.report({'ERROR'}, f"Not a valid ArtDef scan: {err}")
             return {'CANCELLED'}
         except (OSError, ValueError) as err:
             self.report({'ERROR'}, f"Could not read '{self.filepath}': {err}")
             return {'CANCELLED'}
-        obj.data["artdef_source_path"] = os.path.abspath(bpy.path.abspath(self.filepath))   # never exported over
+        obj.data["artdef_source_path"] = path      # Export Rig never writes over it
         loads = 0 if scan.load_vertices is None else len(scan.load_vertices)
         repeated = int(np.count_nonzero(io.repeated_vertex_faces(scan.faces)))
         if repeated:

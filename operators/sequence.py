@@ -67,14 +67,16 @@ class SequenceError(ValueError):
 # polygons
 # --------------------------------------------------------------------------
 
-def fan_triangles(sizes, indices):
-    """Fan triangulation of polygons given as ``sizes`` and flat ``indices``."""
+def fan_triangles(sizes, indices, name=None):
+    """Fan triangulation of polygons given as ``sizes`` and flat ``indices`` (``name``: the file,
+    for the message)."""
     sizes = np.asarray(sizes, dtype=np.int64)
     indices = np.asarray(indices, dtype=np.int64)
     if sizes.size == 0:
         return np.zeros((0, 3), dtype=np.int64)
     if sizes.min() < 3:
-        raise SequenceError(f"a face has {int(sizes.min())} vertices (at least 3 are needed)")
+        raise SequenceError((f"{name}: " if name else "")
+                            + f"a face has {int(sizes.min())} vertices (at least 3 are needed)")
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     n_tri = sizes - 2
     poly = np.repeat(np.arange(len(sizes)), n_tri)           # polygon of each triangle
@@ -277,6 +279,12 @@ def _read_ply_ascii(data, body, elements, name):
     return vertices, sizes, indices
 
 
+def _check_length(n, name, ename):
+    """A PLY list's length as read: negative only in a damaged file."""
+    if n < 0:
+        raise SequenceError(f"{name}: a PLY '{ename}' list has a negative length ({n})")
+
+
 def _walk_lists(data, pos, count, ctype, itype, name, ename):
     """Sizes and start offsets of ``count`` lists (count type ``ctype``) from ``pos``."""
     sizes = np.empty(count, dtype=np.int64)
@@ -297,8 +305,7 @@ def _walk_lists(data, pos, count, ctype, itype, name, ename):
             if pos + csize > end:
                 raise SequenceError(f"{name}: the file ends inside the PLY '{ename}' element")
             n = int(np.frombuffer(data, dtype=code, count=1, offset=pos)[0])
-            if n < 0:
-                raise SequenceError(f"{name}: a PLY '{ename}' list has a negative length ({n})")
+            _check_length(n, name, ename)
             sizes[k] = n
             starts[k] = pos + csize
             pos += csize + n * isize
@@ -326,10 +333,6 @@ def _read_ply_binary(data, body, elements, name, endian):
         if pos + nbytes > len(data):
             raise SequenceError(f"{name}: the file ends inside the PLY '{what}' element")
 
-    def negative(n, ename):
-        if n < 0:
-            raise SequenceError(f"{name}: a PLY '{ename}' list has a negative length ({n})")
-
     for ename, count, props in elements:
         # every element takes at least its fixed properties and its lists' counts: a count the file
         # cannot hold is refused before anything is allocated for it
@@ -350,7 +353,7 @@ def _read_ply_binary(data, body, elements, name, endian):
             ctype, itype = np.dtype(endian + props[0][2]), np.dtype(endian + props[0][1])
             need(ctype.itemsize, ename)
             n = int(np.frombuffer(data, dtype=ctype, count=1, offset=pos)[0])
-            negative(n, ename)
+            _check_length(n, name, ename)
             dtype = np.dtype([("n", ctype), ("i", itype, (n,))])
             if pos + dtype.itemsize * count <= len(data):
                 table = np.frombuffer(data, dtype=dtype, count=count, offset=pos)
@@ -378,7 +381,7 @@ def _read_ply_binary(data, body, elements, name, endian):
                 cdt = np.dtype(endian + ctype)
                 need(cdt.itemsize, ename)
                 n = int(np.frombuffer(data, dtype=cdt, count=1, offset=pos)[0])
-                negative(n, ename)
+                _check_length(n, name, ename)
                 pos += cdt.itemsize
                 idt = np.dtype(endian + t)
                 need(idt.itemsize * n, ename)
@@ -406,10 +409,8 @@ def read_ply(path):
         raise SequenceError(f"{name} has no vertices")
     if sizes is None or len(sizes) == 0:
         raise SequenceError(f"{name} has no faces")
-    if sizes.min() < 3:
-        raise SequenceError(f"{name}: a face has {int(sizes.min())} vertices (at least 3 are needed)")
     _check_indices(name, indices, len(vertices))
-    return MeshFile(vertices, sizes, indices, fan_triangles(sizes, indices))
+    return MeshFile(vertices, sizes, indices, fan_triangles(sizes, indices, name))
 
 
 def read_mesh(path):
