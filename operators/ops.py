@@ -308,20 +308,34 @@ def apply_result(context, obj, result, scan, tri_polygons, *, load_index=0, fram
     groups, armature, residual shape keys, load controls or replay, residual colours, the
     object's settings and summary. The one way a rig is made from a fit — the Fit operator after
     its job and the command line (``operators/headless.py``) both call it. Main thread only;
-    on failure the rig is cleared and the error raised."""
+    on failure what the build made is removed, the previous rig (or the link colours of Preview
+    Links) is put back as it was, and the error raised."""
     if model is None:
         model, vertex_residual = model_of(result, scan, load_index)
     if model is None:
         raise ValueError("The fit returned no pseudo-articulation for that load point")
     pseudo = result.mode == "pseudo"
+    before = rig.datablock_snapshot()
+    # the previous rig (or Preview Links' colours) is set aside, not removed, until the new rig
+    # is built: a build that fails puts it back as it was
+    stash = rig.stash_rig(obj, context.scene)
     try:
         rig.build_rig(context, obj, model, tri_polygons, scan.kind, [load_index] if pseudo else None,
                       frames_per_field)
         scale = float(vertex_residual.max()) if len(vertex_residual) else 0.0
         rig.write_residual(obj.data, vertex_residual, scale)
     except Exception:
-        rig.clear_rig(obj, context.scene)
+        try:
+            rig.clear_rig(obj, context.scene)
+        finally:
+            try:
+                # whatever the build made and clear_rig did not know of yet
+                # (an action, armature or empty made just before the failure)
+                rig.remove_new_datablocks(before)
+            finally:
+                rig.restore_rig(stash)
         raise
+    rig.drop_stash(stash)
     LAST_RESULTS[obj.name] = model
     store_summary(obj, result, model, scan, vertex_residual, load_index=load_index,
                   frames_per_field=frames_per_field, seconds=seconds, auto_links=auto_links)
@@ -543,20 +557,13 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
         if job.model is None:
             self.report({'ERROR'}, "The fit returned no pseudo-articulation for that load point")
             return {'CANCELLED'}
-        before = rig.datablock_snapshot()
         try:
             model = apply_result(context, obj, job.result, job.scan, job.tri_polygons,
                                  load_index=self.load_index, frames_per_field=self.frames_per_field,
                                  auto_links=self.auto_links, seconds=job.seconds, model=job.model,
                                  vertex_residual=job.vertex_residual)
-        except Exception as err:
+        except Exception as err:    # apply_result removed what it made and kept the previous rig
             traceback.print_exc()
-            try:
-                rig.clear_rig(obj, context.scene)
-            finally:
-                # whatever the build made and clear_rig did not know of yet
-                # (an action, armature or empty made just before the failure)
-                rig.remove_new_datablocks(before)
             self.report({'ERROR'}, f"Building the rig failed: {err}")
             return {'CANCELLED'}
         # The core's notes (why and how the reduced method ran) go to the Info log; the
