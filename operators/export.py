@@ -335,7 +335,8 @@ class ARTDEF_OT_export_rig(bpy.types.Operator, ExportHelper):
         if os.path.exists(folder) and not os.path.isdir(folder):
             self.report({'ERROR'}, f"Export Rig: {folder} is a file, not a folder")
             return {'CANCELLED'}
-        source = context.active_object.data.get("artdef_source_path") if context.active_object else None
+        mesh_obj, _ = rig_parts(context.active_object)   # the armature may be the active object
+        source = mesh_obj.data.get("artdef_source_path") if mesh_obj is not None else None
         if source and os.path.exists(path) and same_file(path, source):
             self.report({'ERROR'}, f"Export Rig: {os.path.basename(path)} is the file the scan was imported "
                                    "from; choose another name")

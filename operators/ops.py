@@ -74,6 +74,31 @@ def mesh_in_object_mode(cls, context):
     return obj
 
 
+def owns_rig(obj):
+    """Whether ``obj`` has an ArtDef armature of its own (a duplicate of a fitted mesh records the
+    original's armature, which stays the original's)."""
+    arm = obj.artdef.rig
+    if arm is None or not arm.get("artdef_rig"):
+        return False
+    owner = arm.get("artdef_owner")
+    return owner is None or owner == obj
+
+
+def shared_rig_message(obj):
+    """One line when another object that uses ``obj``'s mesh data (a linked duplicate) has its
+    ArtDef rig on that mesh — its vertex groups and shape keys are the mesh's, so fitting or
+    clearing ``obj`` would replace or remove them; else None."""
+    mesh = obj.data
+    if mesh is None or mesh.users < 2:
+        return None
+    for other in bpy.data.objects:
+        if other != obj and other.data == mesh and owns_rig(other):
+            return (f"'{obj.name}' shares its mesh '{mesh.name}' with '{other.name}', whose ArtDef "
+                    f"rig (vertex groups, shape keys) is on that mesh; make '{obj.name}' single-user "
+                    f"first (Object > Relations > Make Single User > Object & Data)")
+    return None
+
+
 def _scan_mesh_poll(cls, context):
     obj = mesh_in_object_mode(cls, context)
     if obj is None:
@@ -510,6 +535,10 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
     def _prepare(self, context):
         """Read the scan and check the settings; returns a job or None (reported)."""
         obj = context.active_object
+        shared = shared_rig_message(obj)
+        if shared is not None:
+            self.report({'ERROR'}, shared)
+            return None
         self._settings(obj)
         try:
             options = options_from(self)
@@ -776,6 +805,10 @@ class ARTDEF_OT_clear_rig(bpy.types.Operator):
 
     def execute(self, context):
         obj = context.active_object
+        shared = shared_rig_message(obj)
+        if shared is not None:
+            self.report({'ERROR'}, shared)
+            return {'CANCELLED'}
         rig.clear_rig(obj, context.scene)
         LAST_RESULTS.pop(obj.name, None)
         self.report({'INFO'}, f"'{obj.name}': ArtDef rig removed")

@@ -1639,6 +1639,34 @@ def test_fitting_a_duplicate_keeps_the_originals_rig(clean_scene, sample_files):
     assert obj.artdef.rig == arm and copy.artdef.rig not in (None, arm)
 
 
+def test_a_linked_duplicate_leaves_the_originals_rig_alone(clean_scene, sample_files):
+    """Objects sharing one mesh share its vertex groups and shape keys: fitting or clearing a
+    linked duplicate of a fitted mesh would replace or remove the original's. Refused, one line,
+    nothing changed; the original can still be re-fitted and cleared."""
+    obj = import_scan(sample_files["rod"])
+    before_fit = obj.copy()                     # linked duplicate made before the fit
+    bpy.context.scene.collection.objects.link(before_fit)
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    assert bpy.ops.object.duplicate(linked=True) == {'FINISHED'}    # Alt+D after the fit
+    after_fit = bpy.context.active_object
+    assert after_fit.data == obj.data and after_fit.artdef.rig == obj.artdef.rig
+    before = scene_snapshot()
+    for copy in (before_fit, after_fit):
+        with bpy.context.temp_override(active_object=copy, object=copy):
+            with pytest.raises(RuntimeError, match=f"'{copy.name}' shares its mesh '{obj.data.name}' "
+                                                   f"with '{obj.name}'"):
+                bpy.ops.artdef.fit(links=2)
+            if copy == after_fit:
+                with pytest.raises(RuntimeError, match="Make Single User"):
+                    bpy.ops.artdef.clear_rig()
+    assert scene_snapshot() == before
+    with bpy.context.temp_override(active_object=obj, object=obj):
+        assert bpy.ops.artdef.fit(links=2) == {'FINISHED'}
+        assert sorted(item.name for item in obj.artdef.groups) == ["artdef_link_00", "artdef_link_01"]
+        assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert not obj.vertex_groups and obj.data.shape_keys is None
+
+
 def test_name_bones_keeps_the_users_vertex_groups(clean_scene, sample_files):
     obj = import_scan(sample_files["rod"])
     obj.vertex_groups.new(name="user_vg")

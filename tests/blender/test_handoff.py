@@ -830,6 +830,11 @@ def test_export_rig_never_replaces_the_file_the_scan_came_from(installed_addon, 
     with pytest.raises(RuntimeError, match="walk.glb is the file the scan was imported from"):
         bpy.ops.artdef.export_rig(filepath=str(src))
     assert src.read_bytes() == before
+    arm = bpy.context.active_object.artdef.rig        # Export Rig from the armature: the same
+    with bpy.context.temp_override(active_object=arm, object=arm):
+        with pytest.raises(RuntimeError, match="walk.glb is the file the scan was imported from"):
+            bpy.ops.artdef.export_rig(filepath=str(src))
+    assert src.read_bytes() == before
     with pytest.raises(RuntimeError, match="give a file name, not a folder"):
         bpy.ops.artdef.export_rig(filepath=str(tmp_path) + os.sep)
     with pytest.raises(RuntimeError, match="is a file, not a folder"):
