@@ -310,6 +310,8 @@ def _remove_clip_tracks(keys):
     if ad is None:
         return
     for track in list(ad.nla_tracks):
+        if track.name.startswith(STASH_PREFIX):
+            continue                # the previous rig's, set aside during a re-fit (stash_rig)
         actions = [s.action for s in track.strips]
         if actions and all(a is not None and a.get("artdef_made") for a in actions):
             ad.nla_tracks.remove(track)
@@ -448,8 +450,9 @@ def _rig_ids(arm):
         ad = ob.animation_data
         if ad is None:
             continue
-        actions = [ad.action] + [s.action for t in ad.nla_tracks for s in t.strips]
-        out += [a for a in actions if a is not None and a.get("artdef_made") and a not in out]
+        for action in [ad.action] + [s.action for t in ad.nla_tracks for s in t.strips]:
+            if action is not None and action.get("artdef_made") and action not in out:
+                out.append(action)    # once: the active action is also a clip's strip
     return out
 
 
@@ -645,17 +648,15 @@ def drop_stash(stash):
         if vg is not None:
             obj.vertex_groups.remove(vg)
     keys = mesh.shape_keys
+    actions = [stash.record["key_action"]] if stash.record.get("key_action") is not None else []
     if keys is not None:
         ad = keys.animation_data
         if ad is not None:
             for tmp, _ in stash.tracks:
                 track = ad.nla_tracks.get(tmp)
                 if track is not None:
-                    actions = [s.action for s in track.strips]
+                    actions += [s.action for s in track.strips if s.action is not None]
                     ad.nla_tracks.remove(track)
-                    for a in actions:
-                        if a is not None and a.users == 0:
-                            bpy.data.actions.remove(a)
             paths = {f'key_blocks["{tmp}"].value' for tmp, _ in stash.keys}
             for fc in list(ad.drivers):
                 if fc.data_path in paths:
@@ -666,9 +667,9 @@ def drop_stash(stash):
                 obj.shape_key_remove(kb)
     if stash.record.get("made_basis"):
         st.made_basis = True      # the previous fit's Basis is the new rig's now
-    action = stash.record.get("key_action")
-    if action is not None and action.users == 0 and action.get("artdef_made"):
-        bpy.data.actions.remove(action)
+    for action in {a.session_uid: a for a in actions}.values():   # the previous replay's
+        if action.users == 0 and action.get("artdef_made"):
+            bpy.data.actions.remove(action)
     for tmp, _ in stash.attrs:
         attr = mesh.attributes.get(tmp)
         if attr is not None:

@@ -761,6 +761,57 @@ def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
     assert {m["code"] for m in messages if m["severity"] == 1} <= allowed, messages
 
 
+def test_refit_of_several_clips_in_blender(clean_scene, tmp_path, monkeypatch):
+    """A two-clip file fitted in Blender, then fitted again: the re-fit replaces the clips' NLA
+    tracks and actions under the same names; a re-fit whose rig build fails leaves the previous
+    rig, its tracks and actions exactly as they were."""
+    from test_blender_versions import _rig_state
+    compat = importlib.import_module(ADDON_MODULE + ".operators.compat")
+    rig = importlib.import_module(ADDON_MODULE + ".operators.rig")
+    obj, arm = build_character(last_frame=21)
+    walk = arm.animation_data.action
+    walk.name = "Walk"
+    wave = bpy.data.actions.new("Wave")
+    arm.animation_data.action = wave
+    for f in (1, 6, 11):
+        for i, n in enumerate(BONES):
+            arm.pose.bones[n].rotation_euler = (0.0, 0.0, 0.5 * math.sin(f / 3 + i))
+            arm.pose.bones[n].keyframe_insert("rotation_euler", frame=f)
+    arm.animation_data.action = walk
+    arm.animation_data.nla_tracks.new().strips.new("Wave", 1, wave)
+    src = tmp_path / "two.glb"
+    assert bpy.ops.export_scene.gltf(filepath=str(src), export_format='GLB') == {'FINISHED'}
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    assert bpy.ops.artdef.fields_from_file(filepath=str(src)) == {'FINISHED'}
+    scan = bpy.context.view_layer.objects.active
+
+    def names():
+        return {n: sorted(d.name for d in getattr(bpy.data, n)) for n in ("objects", "armatures", "actions")}
+
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    first = names()
+    assert bpy.ops.artdef.fit(links=2) == {'FINISHED'}
+    assert names() == first
+    tracks = sorted(t.name for t in scan.data.shape_keys.animation_data.nla_tracks)
+    assert tracks == sorted(t.name for t in scan.artdef.rig.animation_data.nla_tracks) == ["Walk", "Wave"]
+    before = _rig_state(scan, compat)
+    real = rig._build_replay
+
+    def fail_after(*args, **kwargs):
+        real(*args, **kwargs)
+        raise RuntimeError("forced failure")
+
+    monkeypatch.setattr(rig, "_build_replay", fail_after)
+    with pytest.raises(RuntimeError, match="forced failure"):
+        bpy.ops.artdef.fit(links=3)
+    monkeypatch.setattr(rig, "_build_replay", real)
+    after = _rig_state(scan, compat)
+    assert {k: v for k, v in after.items() if v != before[k]} == {}, \
+        {k: before[k] for k, v in after.items() if v != before[k]}
+    assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert names()["actions"] == ["Walk", "Wave"]       # the imported clips only
+
+
 def test_several_sequences_fit_one_rig_with_one_clip_each(clean_scene, tmp_path):
     """``fit walk/ --clip wave/``: two OBJ sequences of one mesh (same rest file),
     one rig, one animation per sequence at the files' numbers."""
