@@ -33,7 +33,7 @@ from bpy_extras.io_utils import ExportHelper
 
 from . import compat, menus, rig
 from .ops import in_object_mode
-from ..artdef_addon.files import same_file
+from ..artdef_addon.files import Outputs, same_file
 
 FORMATS = (('GLB', "glTF Binary (.glb)", "One .glb file"),
            ('GLTF_SEPARATE', "glTF Separate (.gltf + .bin)", "A .gltf with its .bin next to it"),
@@ -230,72 +230,83 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
     scene, view_layer = context.scene, context.view_layer
     clip_name = clip_name or mesh_obj.data.get("artdef_clip") or "ArtDef"
 
-    saved_selection = [o for o in view_layer.objects if o.select_get()]
-    saved_active = view_layer.objects.active
-    saved_range = (scene.frame_start, scene.frame_end)
-    saved_frame = scene.frame_current
-    saved_name = mesh_obj.name
-    arm_hidden = arm.hide_get(view_layer=view_layer)
-    copy, baked = None, None
-    try:
-        arm.hide_set(False)
-        step = 1
-        if _driven_bone_channels(arm):           # a Green's rig: bake its load sweep
-            baked = _bake_driven_pose(context, arm)
-        elif _clip_count(mesh_obj) == 1:
-            step = _key_step(mesh_obj, arm)
-            span = _action_range(mesh_obj, arm)
-            if span is not None:                 # FBX bakes over the scene's range
-                for _ in range(2):
-                    scene.frame_start, scene.frame_end = span
-        copy, left_out = _clean_copy(context, mesh_obj, arm, debug_attributes)
-        mesh_obj.name = saved_name + "_artdef_export_source"
-        copy.name = saved_name                   # the exported node keeps the mesh's name
-        clips = _clip_count(mesh_obj)
-        export_scene, export_layer = scene, view_layer
-        for o in export_layer.objects:
-            o.select_set(False, view_layer=export_layer)
-        copy.select_set(True, view_layer=export_layer)
-        arm.select_set(True, view_layer=export_layer)
-        export_layer.objects.active = copy
-        with context.temp_override(scene=export_scene, view_layer=export_layer, active_object=copy,
-                                   object=copy, selected_objects=[copy, arm]):
-            if fmt == 'FBX':
-                muted = []
-                if clips > 1:  # the FBX exporter writes one take per NOT muted NLA strip
-                    for id_data in (arm, copy.data.shape_keys):
-                        ad = getattr(id_data, "animation_data", None) if id_data else None
-                        for track in (ad.nla_tracks if ad is not None else ()):
-                            if track.mute:
-                                track.mute = False
-                                muted.append(track)
-                try:
-                    _fbx(path, debug_attributes, step, clips)
-                finally:
-                    for track in muted:
-                        track.mute = True
-            else:
-                _gltf(path, fmt, clip_name, debug_attributes, step, clips)
-    finally:
-        if copy is not None:
-            data = copy.data
-            bpy.data.objects.remove(copy, do_unlink=True)
-            if data.users == 0:
-                bpy.data.meshes.remove(data)
-        mesh_obj.name = saved_name
-        if baked is not None:
-            old, action = baked
-            compat.assign_action(arm, old)
-            bpy.data.actions.remove(action)
-        for _ in range(2):
-            scene.frame_start, scene.frame_end = saved_range
-        scene.frame_set(saved_frame)
-        for o in view_layer.objects:
-            o.select_set(o in saved_selection)
-        view_layer.objects.active = saved_active
-        arm.hide_set(arm_hidden)
-    if not os.path.isfile(path):
-        raise RuntimeError(f"the exporter wrote nothing to {path}")
+    # written all or nothing (files.Outputs): the exporter writes into a hidden folder beside the
+    # file, and the file (with a glTF Separate's .bin) replaces the user's only once complete
+    with Outputs() as out:
+        target = out.path(path)
+        saved_selection = [o for o in view_layer.objects if o.select_get()]
+        saved_active = view_layer.objects.active
+        saved_range = (scene.frame_start, scene.frame_end)
+        saved_frame = scene.frame_current
+        saved_name = mesh_obj.name
+        arm_hidden = arm.hide_get(view_layer=view_layer)
+        copy, baked = None, None
+        try:
+            arm.hide_set(False)
+            step = 1
+            if _driven_bone_channels(arm):           # a Green's rig: bake its load sweep
+                baked = _bake_driven_pose(context, arm)
+            elif _clip_count(mesh_obj) == 1:
+                step = _key_step(mesh_obj, arm)
+                span = _action_range(mesh_obj, arm)
+                if span is not None:                 # FBX bakes over the scene's range
+                    for _ in range(2):
+                        scene.frame_start, scene.frame_end = span
+            copy, left_out = _clean_copy(context, mesh_obj, arm, debug_attributes)
+            mesh_obj.name = saved_name + "_artdef_export_source"
+            copy.name = saved_name                   # the exported node keeps the mesh's name
+            clips = _clip_count(mesh_obj)
+            export_scene, export_layer = scene, view_layer
+            for o in export_layer.objects:
+                o.select_set(False, view_layer=export_layer)
+            copy.select_set(True, view_layer=export_layer)
+            arm.select_set(True, view_layer=export_layer)
+            export_layer.objects.active = copy
+            with context.temp_override(scene=export_scene, view_layer=export_layer, active_object=copy,
+                                       object=copy, selected_objects=[copy, arm]):
+                if fmt == 'FBX':
+                    muted = []
+                    if clips > 1:  # the FBX exporter writes one take per NOT muted NLA strip
+                        for id_data in (arm, copy.data.shape_keys):
+                            ad = getattr(id_data, "animation_data", None) if id_data else None
+                            for track in (ad.nla_tracks if ad is not None else ()):
+                                if track.mute:
+                                    track.mute = False
+                                    muted.append(track)
+                    try:
+                        _fbx(target, debug_attributes, step, clips)
+                    finally:
+                        for track in muted:
+                            track.mute = True
+                else:
+                    _gltf(target, fmt, clip_name, debug_attributes, step, clips)
+        finally:
+            if copy is not None:
+                data = copy.data
+                bpy.data.objects.remove(copy, do_unlink=True)
+                if data.users == 0:
+                    bpy.data.meshes.remove(data)
+            mesh_obj.name = saved_name
+            if baked is not None:
+                old, action = baked
+                compat.assign_action(arm, old)
+                bpy.data.actions.remove(action)
+            for _ in range(2):
+                scene.frame_start, scene.frame_end = saved_range
+            scene.frame_set(saved_frame)
+            for o in view_layer.objects:
+                o.select_set(o in saved_selection)
+            view_layer.objects.active = saved_active
+            arm.hide_set(arm_hidden)
+
+        if not os.path.isfile(target):
+            raise RuntimeError(f"the exporter wrote nothing to {path}")
+        folder = os.path.dirname(target)
+        final_dir = os.path.dirname(os.path.realpath(path) if os.path.islink(path) else path)
+        for name in sorted(os.listdir(folder)):   # a glTF Separate's .bin, written beside the .gltf
+            if name != os.path.basename(target):
+                os.replace(os.path.join(folder, name), out.path(os.path.join(final_dir, name)))
+        out.commit()
     return path, left_out
 
 

@@ -367,6 +367,36 @@ def test_export_rig_from_the_armature_and_as_fbx(fitted_character, tmp_path):
     assert sorted(o.type for o in objects) == ['ARMATURE', 'MESH']
 
 
+def test_export_rig_writes_all_or_nothing(fitted_character, tmp_path, monkeypatch):
+    """Export Rig writes through a hidden folder and renames into place: an exporter that fails
+    half-way leaves the user's previous export byte-identical and no temporary behind; glTF
+    Separate puts the .gltf and its .bin side by side."""
+    export = importlib.import_module(ADDON_MODULE + ".operators.export")
+    path = tmp_path / "rig.glb"
+    path.write_bytes(b"the previous export")
+    real = export._gltf
+
+    def half_written(target, *args, **kwargs):
+        with open(target, "wb") as f:
+            f.write(b"glTF half")
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(export, "_gltf", half_written)
+    with pytest.raises(RuntimeError, match="Export failed: disk full"):
+        bpy.ops.artdef.export_rig(filepath=str(path))
+    assert path.read_bytes() == b"the previous export"
+    assert sorted(os.listdir(tmp_path)) == ["rig.glb"]
+    monkeypatch.setattr(export, "_gltf", real)
+    assert bpy.ops.artdef.export_rig(filepath=str(path)) == {'FINISHED'}
+    assert read_glb(path)[0]["skins"]
+    sep = tmp_path / "sep" / "rig.gltf"
+    assert bpy.ops.artdef.export_rig(filepath=str(sep), export_format='GLTF_SEPARATE') == {'FINISHED'}
+    assert sorted(os.listdir(sep.parent)) == ["rig.bin", "rig.gltf"]
+    doc = json.loads(sep.read_text())
+    assert [b["uri"] for b in doc["buffers"]] == ["rig.bin"]
+    assert os.path.getsize(sep.parent / "rig.bin") == doc["buffers"][0]["byteLength"]
+
+
 def test_export_rig_needs_a_rig(clean_scene):
     obj, _arm = build_character(last_frame=6)
     bpy.context.view_layer.objects.active = obj
