@@ -140,10 +140,13 @@ def _as_index(name, a, n, ndim=1):
             raise ScanError(f"{name} must be integer indices, got dtype {a.dtype}")
     if a.ndim != ndim:
         raise ScanError(f"{name} must have {ndim} dimension(s), got shape {a.shape}")
-    a = a.astype(np.int64)
-    if a.size and (a.min() < 0 or a.max() >= n):
-        raise ScanError(f"{name} has indices out of range [0, {n}): min {a.min()}, max {a.max()}")
-    return a
+    if a.size:
+        # the extremes in the array's own dtype, as exact Python integers: a uint64 index of 2**63 or
+        # more would read as negative after the cast to int64
+        lo, hi = int(a.min()), int(a.max())
+        if lo < 0 or hi >= n:
+            raise ScanError(f"{name} has indices out of range [0, {n}): min {lo}, max {hi}")
+    return a.astype(np.int64)
 
 
 def validate_scan(scan: Scan) -> Scan:

@@ -692,3 +692,17 @@ def test_settings_without_effect_are_said_not_dropped(rod_file, tmp_path, capsys
     assert F.load_result(tmp_path / "o.npz").p_max == 4.0
     code, out, err = run(capsys, "fit", rod_file, "--links", "3", "--p-max", "4", "-q", "-o", tmp_path / "q.npz")
     assert code == 0 and out == "" and err == []
+
+
+# ---------------------------------------------------------------- third QA pass
+@pytest.mark.parametrize("value,says", [(2 ** 63 + 5, "max 9223372036854775813"),
+                                        (2 ** 64 - 1, "max 18446744073709551615")])
+def test_uint64_face_index_is_named_as_it_is(rod, tmp_path, capsys, value, says):
+    """A uint64 index of 2**63 or more is out of range and named by its value, not by the negative
+    number its cast to int64 gives."""
+    faces = rod.faces.astype(np.uint64)
+    faces[0, 0] = value
+    p = raw_npz(tmp_path / "u64.npz", _members(rod, **{"faces.npy": npy(faces)}))
+    code, _, err = run(capsys, "info", p)
+    assert code == 2 and len(err) == 1 and "out of range" in err[0] and says in err[0], err
+    assert "min 0," in err[0] and "-" not in err[0].split("min")[1], err
