@@ -170,6 +170,18 @@ def _numeric_scalar(name, d, key, default=None, kinds="fiu"):
     return float(a.reshape(()))
 
 
+def _check_version(name, d, what) -> None:
+    """BadFile unless ``format_version`` (optional: absent means 1) is a version this artdef reads: a
+    whole number from 1 to ``scan.FORMAT_VERSION`` (NaN and infinity are no version)."""
+    version = _numeric_scalar(name, d, "format_version", float(S.FORMAT_VERSION))
+    if not math.isfinite(version) or version != int(version) or version < 1:
+        raise BadFile(f"{name}: 'format_version' is {version:g}, not a {what} format version "
+                      f"(a whole number from 1; this artdef reads {S.FORMAT_VERSION})")
+    if version > S.FORMAT_VERSION:
+        raise BadFile(f"{name}: {what} format version {version:g} is newer than this artdef reads "
+                      f"({S.FORMAT_VERSION})")
+
+
 def read_scan(path):
     """Read and validate a scan file (format v1, ``scan`` module docstring) → ``Scan``.
 
@@ -184,10 +196,7 @@ def read_scan(path):
             found = ", ".join(sorted(d)) or "nothing"
             raise BadFile(f"{name}: no '{key}' array (the file holds: {found})")
     probe = _numeric_scalar(name, d, "probe_load", 1.0)
-    version = _numeric_scalar(name, d, "format_version", float(S.FORMAT_VERSION))
-    if version > S.FORMAT_VERSION:
-        raise BadFile(f"{name}: scan format version {version:g} is newer than this artdef reads "
-                      f"({S.FORMAT_VERSION})")
+    _check_version(name, d, "scan")
     try:
         return S.validate_scan(S.Scan(
             vertices=d["vertices"], faces=d["faces"],
@@ -240,6 +249,7 @@ def read_result_arrays(path) -> dict:
     d = read_npz(path)
     if "face_labels" not in d and "vertices" in d:
         raise BadFile(f"{name}: a scan, not a fit result")
+    _check_version(name, d, "result")      # results carry none so far; one that does is checked
     _check_result_arrays(name, d)
     for key in _RESULT_SCALARS:
         _numeric_scalar(name, d, key)

@@ -706,3 +706,27 @@ def test_uint64_face_index_is_named_as_it_is(rod, tmp_path, capsys, value, says)
     code, _, err = run(capsys, "info", p)
     assert code == 2 and len(err) == 1 and "out of range" in err[0] and says in err[0], err
     assert "min 0," in err[0] and "-" not in err[0].split("min")[1], err
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf, 0.5, 0.0, -3.0])
+@pytest.mark.parametrize("what", ["scan", "result"])
+def test_format_version_must_be_a_version(rod, result_file, tmp_path, capsys, value, what):
+    d = dict(np.load(result_file)) if what == "result" else files.scan_arrays(rod)
+    d["format_version"] = np.float64(value)
+    p = tmp_path / "v.npz"
+    np.savez(p, **d)
+    code, _, err = run(capsys, "info", p)
+    assert code == 2 and len(err) == 1 and "v.npz: 'format_version' is" in err[0], err
+    assert f"not a {what} format version" in err[0], err
+
+
+def test_format_version_one_or_none_is_read(rod, result_file, tmp_path, capsys):
+    d = dict(np.load(result_file))
+    d["format_version"] = np.int64(1)
+    np.savez(tmp_path / "r.npz", **d)
+    d = files.scan_arrays(rod)
+    d.pop("format_version")
+    np.savez(tmp_path / "s.npz", **d)
+    for name in ("r.npz", "s.npz"):
+        code, _, err = run(capsys, "info", tmp_path / name)
+        assert code == 0 and err == [], err
