@@ -460,11 +460,57 @@ def main(argv=None) -> int:
         old = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:              # not the main thread: the caller handles its signals
         old = None
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = (s if s is None else _Unbroken(s) for s in streams)
     try:
         return _main(argv)
     finally:
+        sys.stdout, sys.stderr = streams
         if old is not None:         # the caller's handler again (tests and scripts call main in-process)
             signal.signal(signal.SIGTERM, old)
+
+
+class _Unbroken:
+    """``sys.stdout`` / ``sys.stderr`` while a command runs: once the reader has closed the pipe
+    (``fit ... | head -1``) what is printed later is dropped, not raised as ``BrokenPipeError``.
+    The lines are a report; the outputs are the work, and a reader that has seen enough must not
+    cost the user them (the fit went on, the outputs are written, the exit code is the command's).
+    The stream's descriptor is pointed at ``os.devnull``, so Blender's own printing and Python's
+    flush at exit find no broken pipe either."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self._broken = False
+
+    def write(self, text):
+        if not self._broken:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._break()
+        return len(text)
+
+    def flush(self):
+        if not self._broken:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._break()
+
+    def _break(self):
+        self._broken = True
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            try:
+                os.dup2(null, self._stream.fileno())
+            finally:
+                os.close(null)
+            self._stream.flush()        # what it still holds goes to os.devnull
+        except (OSError, ValueError, AttributeError):   # no descriptor (a test's capture, an embedding host)
+            pass
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
 
 
 def _main(argv):

@@ -730,3 +730,22 @@ def test_format_version_one_or_none_is_read(rod, result_file, tmp_path, capsys):
     for name in ("r.npz", "s.npz"):
         code, _, err = run(capsys, "info", tmp_path / name)
         assert code == 0 and err == [], err
+
+
+@pytest.mark.parametrize("links", ["3", "auto"])
+def test_stdout_closed_early_still_writes_the_outputs(rod_file, tmp_path, links):
+    """``fit ... | head -1``: the reader closing the pipe costs no output; no traceback, exit 0.
+    (The pipe is closed before the command prints anything, so every line it prints meets it.)"""
+    out = tmp_path / "out.npz"
+    out.write_bytes(b"earlier result")
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        p = subprocess.run([sys.executable, "-m", "artdef_addon", "fit", str(rod_file), "--links", links,
+                            "-o", str(out)], stdout=w, stderr=subprocess.PIPE, env=env, text=True,
+                           timeout=300)
+    finally:
+        os.close(w)
+    assert p.returncode == 0 and p.stderr == "", p.stderr
+    assert F.load_result(out).n_links >= 1 and leftovers(tmp_path) == []
