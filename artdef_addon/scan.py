@@ -122,10 +122,18 @@ def _as_float(name, a, ndim):
     if not np.all(np.isfinite(a)):
         bad = int(np.count_nonzero(~np.isfinite(a)))
         raise ScanError(f"{name} contains {bad} NaN or infinite values")
-    if a.size and np.abs(a).max() > MAX_MAGNITUDE:
-        raise ScanError(f"{name} has values up to {np.abs(a).max():.3g}; beyond {MAX_MAGNITUDE:g} the fit's "
-                        f"squared distances overflow: rescale the scan")
+    top = _magnitude(a)
+    if top > MAX_MAGNITUDE:
+        what = _WHAT_VALUES.get(name, f"{name} values")
+        raise ScanError(f"{what} reach {top:.3g}, beyond {MAX_MAGNITUDE:.0e}, the largest magnitude the fit "
+                        f"works with (its moments multiply up to four of them and would overflow): "
+                        f"rescale the scan (other units)")
     return a
+
+
+#: what :func:`_as_float`'s values are, for its messages
+_WHAT_VALUES = {"vertices": "vertex coordinates", "displacements": "displacements",
+                "greens": "Green's matrix entries (greens)"}
 
 
 def _as_index(name, a, n, ndim=1):

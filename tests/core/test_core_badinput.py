@@ -749,3 +749,20 @@ def test_stdout_closed_early_still_writes_the_outputs(rod_file, tmp_path, links)
         os.close(w)
     assert p.returncode == 0 and p.stderr == "", p.stderr
     assert F.load_result(out).n_links >= 1 and leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("key,scale,says", [
+    ("vertices", 1e61, "vertex coordinates reach 1e+61"),
+    ("displacements", 1e61, "displacements reach 1e+61"),
+    ("greens", 1e61, "Green's matrix entries (greens) reach 1e+61")])
+def test_too_large_values_are_named_for_what_they_are(key, scale, says):
+    """The message names the values that are too large (no 'squared distances' of a field or a
+    Green's matrix, which are neither)."""
+    sc = samples.make("greens_rod" if key == "greens" else "rod")
+    arr = np.array(getattr(sc, key), dtype=float)
+    arr.flat[0] = scale
+    with pytest.raises(S.ScanError) as exc:
+        S.validate_scan(S.Scan(**{**{k: getattr(sc, k) for k in ("vertices", "faces", "greens", "displacements",
+                                                                 "load_vertices", "probe_load")}, key: arr}))
+    msg = str(exc.value)
+    assert says in msg and "1e+60" in msg and "squared distances" not in msg, msg
