@@ -117,7 +117,11 @@ def read_obj(path):
     name, data = _read_bytes(path)
     if b"\0" in data[:4096]:
         raise SequenceError(f"cannot read {name}: not a text OBJ file")
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]     # a UTF-8 byte-order mark (Windows editors): else the first 'v' line is not read
     text = data.decode("utf-8", errors="replace")
+    if "\r" in text:       # Windows (CRLF) and classic Mac (CR only) line ends: one line per '\n' below
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
     vlines = _V_LINE.findall(text)
     flines = _F_LINE.findall(text)
     if not vlines:
@@ -155,7 +159,7 @@ def read_obj(path):
     indices = indices - 1
     if np.any(neg):  # relative to the vertices read before that face
         seen, n_v = [], 0
-        for line in text.splitlines():
+        for line in text.split("\n"):    # the lines the patterns above read (splitlines knows more ends)
             if line.startswith(("v ", "v\t")):
                 n_v += 1
             elif line.startswith(("f ", "f\t")):

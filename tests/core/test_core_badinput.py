@@ -766,3 +766,17 @@ def test_too_large_values_are_named_for_what_they_are(key, scale, says):
                                                                  "load_vertices", "probe_load")}, key: arr}))
     msg = str(exc.value)
     assert says in msg and "1e+60" in msg and "squared distances" not in msg, msg
+
+
+@pytest.mark.parametrize("bom,end", [(b"\xef\xbb\xbf", b"\n"), (b"", b"\r"), (b"\xef\xbb\xbf", b"\r\n")])
+def test_obj_with_byte_order_mark_or_cr_line_ends_reads_every_vertex(tmp_path, bom, end):
+    """A UTF-8 byte-order mark hid the first 'v' line (the mesh silently lost its first vertex and
+    every face index pointed one vertex on); classic Mac line ends (CR only) read as one line ('no
+    faces')."""
+    seq = _sequence_module()
+    lines = [b"v 9 8 7", b"v 0 0 0", b"# made on Windows", b"v 1 0 0", b"v 0 1 0", b"f 1 2 3", b"f -3 -2 -1"]
+    p = tmp_path / "pose_000.obj"
+    p.write_bytes(bom + end.join(lines) + end)
+    mesh = seq.read_obj(str(p))
+    assert mesh.vertices.tolist() == [[9, 8, 7], [0, 0, 0], [1, 0, 0], [0, 1, 0]]
+    assert mesh.triangles.tolist() == [[0, 1, 2], [1, 2, 3]]
