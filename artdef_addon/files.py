@@ -329,6 +329,11 @@ def check_outputs(inputs, outputs: dict) -> None:
             raise OutputError(f"{opt} {p}: the directory {d} does not exist")
         if not os.access(d, os.W_OK | os.X_OK):
             raise OutputError(f"{opt} {p}: the directory {d} is not writable")
+        longest = _name_max(d)
+        size = len(os.fsencode(os.path.basename(target)))
+        if size > longest:      # else found only when writing, after the fit, naming the temporary
+            raise OutputError(f"{opt} {p}: the file name is {size} bytes long; the file system of {d} "
+                              f"allows {longest}")
         for q in inputs:
             if q is not None and os.path.exists(p) and same_file(p, os.fspath(q)):
                 raise OutputError(f"{opt} {p}: would overwrite the input file; choose another output name")
@@ -336,6 +341,14 @@ def check_outputs(inputs, outputs: dict) -> None:
         for o2, p2 in given[:i]:
             if os.path.realpath(p1) == os.path.realpath(p2) or (os.path.exists(p1) and same_file(p1, p2)):
                 raise OutputError(f"{o2} and {o1} name the same file {p1}")
+
+
+def _name_max(folder: str) -> int:
+    """The longest file name (bytes) the file system of ``folder`` allows (255 if it cannot say)."""
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError, AttributeError, TypeError):     # no pathconf (Windows), unknown
+        return 255
 
 
 #: the hidden folder next to an output that holds its temporary (``.artdef-tmp-<pid>-<random>``)

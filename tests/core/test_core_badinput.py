@@ -780,3 +780,14 @@ def test_obj_with_byte_order_mark_or_cr_line_ends_reads_every_vertex(tmp_path, b
     mesh = seq.read_obj(str(p))
     assert mesh.vertices.tolist() == [[9, 8, 7], [0, 0, 0], [1, 0, 0], [0, 1, 0]]
     assert mesh.triangles.tolist() == [[0, 1, 2], [1, 2, 3]]
+
+
+def test_too_long_output_name_is_refused_before_work(rod_file, tmp_path, capsys, monkeypatch):
+    """A file name longer than the file system allows was found only when writing, after the fit:
+    exit 1 and a line naming the hidden temporary (.artdef-tmp-.../xxx), not the user's path."""
+    _no_fit(monkeypatch)
+    out = tmp_path / ("x" * 300 + ".npz")
+    for argv in (["fit", rod_file, "--links", "3", "-o", out], ["sample", "rod", "-o", out]):
+        code, _, err = run(capsys, *argv)
+        assert code == 2 and len(err) == 1 and "the file name is 304 bytes long" in err[0], err
+        assert ".artdef-tmp" not in err[0] and leftovers(tmp_path) == []
