@@ -41,6 +41,10 @@ _KNOWN_KEYS = {"vertices", "faces", "greens", "displacements", "load_vertices",
 #: coordinates, which overflow float64 beyond about 1e77 (the rod scaled by 1e80 ended in "SVD did
 #: not converge"; 1e75 fits), giving NaN instead of a result
 MAX_MAGNITUDE = 1e60
+#: smallest extent of a mesh accepted (its largest coordinate range): the mirror of MAX_MAGNITUDE, the fit's
+#: moments multiply up to four coordinates, which underflow below about 1e-77 (a mesh 1e-100 across read as
+#: "every triangle is degenerate", one 1e-170 across as fields "1e40 times the mesh's size (0)")
+MIN_SIZE = 1e-60
 #: largest displacement accepted, in units of the mesh's diagonal: no measurement moves an object
 #: by 1e40 of its sizes, and from about 1e90 the fit's rest frames overflow (a Green's scan with
 #: probe_load 1e90 ended in an internal error)
@@ -191,6 +195,17 @@ def _check_scan(scan: Scan) -> Scan:
     n = v.shape[0]
     if n < 3:
         raise ScanError(f"the mesh needs at least 3 vertices, got {n}")
+    extent = np.ptp(v, axis=0)
+    across = float(extent.max())
+    if across == 0:
+        raise ScanError("every vertex is at one point: the mesh has no extent")
+    if across < MIN_SIZE:
+        # else every triangle read as degenerate (their areas underflow), or the fields as 1e40
+        # times a mesh of size 0
+        raise ScanError(f"the mesh is {across:.3g} across, below {MIN_SIZE:.0e}, the smallest the fit works "
+                        f"with (its moments multiply up to four coordinates and would underflow): rescale "
+                        f"the scan (other units)")
+    size = across * float(np.linalg.norm(extent / across))     # the diagonal, without squares that underflow
     f = np.asarray(scan.faces)
     if f.ndim != 2 or f.shape[1] != 3:
         raise ScanError(f"faces must be triangles with shape (T, 3), got {f.shape}"
@@ -234,7 +249,6 @@ def _check_scan(scan: Scan) -> Scan:
         # each factor within the bound, their product may not be
         raise ScanError(f"greens x probe_load reaches {fields_top:.3g} (probe_load {p:.3g}); the fields must stay "
                         f"below {MAX_MAGNITUDE:.0e} in magnitude")
-    size = float(np.linalg.norm(np.ptp(v, axis=0)))
     if fields_top > MAX_RELATIVE_FIELD * size:
         raise ScanError(f"the fields move vertices by up to {fields_top:.3g}, over {MAX_RELATIVE_FIELD:.0e} times the "
                         f"mesh's size ({size:.3g}): check their units" + (" and probe_load" if has_g else ""))

@@ -791,3 +791,16 @@ def test_too_long_output_name_is_refused_before_work(rod_file, tmp_path, capsys,
         code, _, err = run(capsys, *argv)
         assert code == 2 and len(err) == 1 and "the file name is 304 bytes long" in err[0], err
         assert ".artdef-tmp" not in err[0] and leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("scale,says", [(1e-100, "the mesh is 3.6e-99 across, below 1e-60"),
+                                        (1e-170, "the mesh is 3.6e-169 across, below 1e-60"),
+                                        (0.0, "every vertex is at one point: the mesh has no extent")])
+def test_a_mesh_too_small_for_the_arithmetic_says_so(rod, scale, says):
+    """Before: 'every triangle is degenerate (zero area)' (areas underflowed), or 'the fields move
+    vertices by up to 2.14e-169, over 1e+40 times the mesh's size (0)'."""
+    sc = S.Scan(rod.vertices * scale, rod.faces, displacements=rod.displacements * (scale or 1.0))
+    with pytest.raises(S.ScanError) as exc:
+        S.validate_scan(sc)
+    assert says in str(exc.value) and "degenerate" not in str(exc.value), str(exc.value)
+    S.validate_scan(S.Scan(rod.vertices * 1e-50, rod.faces, displacements=rod.displacements * 1e-50))
