@@ -286,6 +286,24 @@ def blender_layer():
     return module
 
 
+#: the largest coordinate (rest position plus displacement) the Blender outputs take: Blender holds
+#: positions as 32-bit floats, whose squares overflow beyond about 1.8e19 (the rod scaled by 3e18 fitted,
+#: then its glTF export failed on NaN, as an internal error; scaled by 1e38 its mesh held infinities)
+BLENDER_MAX = 1e19
+
+
+def _check_blender_range(sc, a) -> None:
+    """_BadInput (before the fit) when the scan's positions are beyond what Blender's outputs hold."""
+    from .scan import _magnitude
+    fields = _magnitude(sc.greens) * sc.probe_load if sc.greens is not None else _magnitude(sc.displacements)
+    reach = _magnitude(sc.vertices) + fields
+    if reach > BLENDER_MAX:
+        what = "--" + "/--".join(k for k in ("blend", "glb", "fbx", "png") if getattr(a, k))
+        raise _BadInput(f"{what}: the scan's positions reach {reach:.3g}; Blender holds them as 32-bit floats, "
+                        f"whose squares overflow beyond about {BLENDER_MAX:.0e}: rescale the scan (other units), or fit "
+                        f"without the Blender outputs")
+
+
 def _cmd_fit(a) -> int:
     from . import api, files
     from . import fit as fit_module
@@ -364,6 +382,8 @@ def _cmd_fit(a) -> int:
             if not any(os.path.basename(p.rstrip("/")) in line for p in (a.scan, *a.clip)):
                 line = f"{a.scan}: {line}"      # an importer's own message names no file
             raise _BadInput(line) from None
+    if blender:
+        _check_blender_range(sc, a)
     t_load = time.perf_counter() - t0
     if not a.quiet:
         # settings this fit does not use are kept in the result (one settings record for every

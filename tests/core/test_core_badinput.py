@@ -804,3 +804,20 @@ def test_a_mesh_too_small_for_the_arithmetic_says_so(rod, scale, says):
         S.validate_scan(sc)
     assert says in str(exc.value) and "degenerate" not in str(exc.value), str(exc.value)
     S.validate_scan(S.Scan(rod.vertices * 1e-50, rod.faces, displacements=rod.displacements * 1e-50))
+
+
+@pytest.mark.parametrize("scale", [1e20, 1e38, 1e55])
+def test_positions_beyond_blenders_floats_are_refused_before_work(rod, tmp_path, capsys, monkeypatch, scale):
+    """--blend/--glb/--fbx/--png hold positions as 32-bit floats: a scan reaching 1e20 fitted, then
+    failed in the glTF exporter (internal error: a NaN), and by 1e38 Blender's mesh held infinities."""
+    p = tmp_path / "big.npz"
+    files.write_scan(p, S.Scan(rod.vertices * scale, rod.faces, displacements=rod.displacements * scale))
+    _no_fit(monkeypatch)
+    fake = type("Headless", (), {"require_bpy": staticmethod(lambda: None),
+                                 "build_outputs": staticmethod(lambda *a, **k: pytest.fail("Blender ran"))})
+    monkeypatch.setattr(cli, "blender_layer", lambda: fake)
+    code, _, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / "o.npz", "--blend", tmp_path / "o.blend",
+                       "--glb", tmp_path / "o.glb")
+    assert code == 2 and len(err) == 1 and "--blend/--glb: the scan's positions reach" in err[0], err
+    assert "32-bit floats" in err[0] and "internal error" not in err[0]
+    assert sorted(os.listdir(tmp_path)) == ["big.npz"]
