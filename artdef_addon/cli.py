@@ -304,6 +304,14 @@ def _check_blender_range(sc, a) -> None:
                         f"without the Blender outputs")
 
 
+def _utf8(path: str) -> bool:
+    try:
+        os.fsencode(path).decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
 def _cmd_fit(a) -> int:
     from . import api, files
     from . import fit as fit_module
@@ -351,6 +359,15 @@ def _cmd_fit(a) -> int:
         raise _BadInput(str(exc)) from None
     headless = None
     if blender or kind != "npz":
+        # Blender's names and file paths are UTF-8 text: a name that is not (bytes a POSIX file name
+        # may hold) failed after the fit as "internal error: TypeError: BlendDataMeshes.new() ...
+        # surrogates not allowed"
+        seen = [a.scan, *a.clip] + [p for p in (a.blend, a.glb, a.fbx, a.png) if p]
+        for path in seen:
+            if not _utf8(os.path.abspath(path)):
+                shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+                raise _BadInput(f"{shown}: Blender takes only file and folder names in UTF-8, and this one "
+                                "is not: rename it")
         # Python finds its temporary folder by writing and removing a probe file there the first
         # time it is asked: ask now, not inside the Blender stage's output capture, where a Ctrl-C
         # could leave the probe behind (blender_output's log is a temporary file)

@@ -391,7 +391,7 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper, FrameRang
         except (sequence.SequenceError, _scan.ScanError) as err:
             self.report({'ERROR'}, f"Cannot import the mesh sequence: {err}")
             return {'CANCELLED'}
-        prefix = sequence.split_number(os.path.basename(paths[0]))[0].rstrip("_-. ") or "sequence"
+        prefix = _text(sequence.split_number(os.path.basename(paths[0]))[0]).rstrip("_-. ") or "sequence"
         try:
             mesh = io.new_mesh_from_polygons(prefix, seq.vertices, seq.sizes, seq.indices)
         except _scan.ScanError as err:
@@ -403,8 +403,8 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper, FrameRang
             bpy.data.meshes.remove(mesh)
             self.report({'ERROR'}, f"Cannot import the mesh sequence: {err}")
             return {'CANCELLED'}
-        mesh["artdef_source"] = os.path.basename(paths[0])
-        mesh["artdef_rest_file"] = os.path.basename(paths[rest])
+        mesh["artdef_source"] = _text(os.path.basename(paths[0]))
+        mesh["artdef_rest_file"] = _text(os.path.basename(paths[rest]))
         # replay timing: a file's number is its frame (the rest file and files equal to it: rest)
         numbers = [sequence.split_number(os.path.basename(p))[1] for p in paths]
         moved = [n for i, n in enumerate(numbers) if i != rest]
@@ -416,10 +416,16 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper, FrameRang
         skipped = int(np.count_nonzero(~moves))
         self.report({'INFO'}, f"Imported '{obj.name}': {len(paths)} files, {len(seq.vertices)} "
                               f"vertices, {scan.n_fields} fields, rest "
-                              f"{os.path.basename(paths[rest])}"
+                              f"{_text(os.path.basename(paths[rest]))}"
                               + (f"; {skipped} files equal to the rest skipped" if skipped else "")
                               + f" ({time.perf_counter() - t0:.2f} s)")
         return {'FINISHED'}
+
+
+def _text(name):
+    """A file name as Blender can hold it (UTF-8): bytes that are not UTF-8 (a POSIX name may hold
+    them; Python keeps them as surrogates, which Blender's strings refuse) become U+FFFD."""
+    return os.fsencode(name).decode("utf-8", "replace")
 
 
 def menu_import(self, context):

@@ -821,3 +821,20 @@ def test_positions_beyond_blenders_floats_are_refused_before_work(rod, tmp_path,
     assert code == 2 and len(err) == 1 and "--blend/--glb: the scan's positions reach" in err[0], err
     assert "32-bit floats" in err[0] and "internal error" not in err[0]
     assert sorted(os.listdir(tmp_path)) == ["big.npz"]
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="a file name that is not UTF-8 (POSIX bytes)")
+def test_a_name_blender_cannot_hold_is_refused_before_work(rod, tmp_path, capsys, monkeypatch):
+    """A scan or an output named in bytes that are not UTF-8 reached Blender after the fit: exit 1,
+    'internal error: TypeError: BlendDataMeshes.new(): ... surrogates not allowed'."""
+    bad = os.fsdecode(b"r\xe9")
+    files.write_scan(tmp_path / (bad + ".npz"), rod)
+    files.write_scan(tmp_path / "rod.npz", rod)
+    _no_fit(monkeypatch)
+    fake = type("Headless", (), {"require_bpy": staticmethod(lambda: None),
+                                 "build_outputs": staticmethod(lambda *a, **k: pytest.fail("Blender ran"))})
+    monkeypatch.setattr(cli, "blender_layer", lambda: fake)
+    for scan, blend in ((bad + ".npz", "o.blend"), ("rod.npz", bad + ".blend")):
+        code, _, err = run(capsys, "fit", tmp_path / scan, "--links", "3", "--blend", tmp_path / blend)
+        assert code == 2 and len(err) == 1 and "r\\xe9" in err[0] and "not: rename it" in err[0], err
+    assert sorted(os.listdir(tmp_path)) == sorted([bad + ".npz", "rod.npz"])
