@@ -251,7 +251,11 @@ def operator_error(err: RuntimeError) -> str:
     lines = [ln.strip() for ln in str(err).splitlines()]
     errors = [ln.split("Error: ", 1)[1].replace("Error: ", "") for ln in lines
               if "Error: " in ln and not ln.startswith("Error: Python: Traceback")]
-    line = errors[-1] if errors else (lines[0] if lines else "the operator failed")
+    raw = str(err).splitlines()
+    # a traceback's own last line, its exception (``struct.error: ...``, which no "Error: " names)
+    raised = [ln.strip() for ln in raw[1:] if ln.strip() and not ln[:1].isspace()
+              and not ln.startswith("Location:")] if lines and lines[0].startswith("Error: Python: Traceback") else []
+    line = errors[-1] if errors else raised[-1] if raised else (lines[0] if lines else "the operator failed")
     # the importers' pointer to their console output, which a headless run (and a user who has no
     # console window open) does not see: the line is the message
     for tail in (", see console for details", ", see console for detail", " (see console for details)",
@@ -315,7 +319,8 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
         try:
             new = import_animated(context, path)
         except (RuntimeError, ValueError) as err:
-            self.report({'ERROR'}, f"Cannot import {os.path.basename(path)}: {str(err).strip()}")
+            line = operator_error(err) if isinstance(err, RuntimeError) else str(err).strip()
+            self.report({'ERROR'}, f"Cannot import {os.path.basename(path)}: {line}")
             return {'CANCELLED'}
         obj = animated_mesh(new)
         if obj is None:

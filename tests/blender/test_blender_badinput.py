@@ -115,3 +115,35 @@ def test_sigterm_in_the_blender_stage(tmp_path, interrupt_at, monkeypatch):
     assert (tmp_path / "out.blend").read_bytes() == b"earlier blend"
     assert sorted(os.listdir(tmp_path)) == ["br.npz", "out.blend", "temp"]
     assert os.listdir(temp) == []
+
+
+def _cli(*argv):
+    import subprocess
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    return subprocess.run([sys.executable, "-m", "artdef_addon", *map(str, argv)], env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_an_importers_traceback_is_named_by_its_exception(tmp_path):
+    """A glTF importer's Python failure was reported as its first line, 'Cannot import tiny.glb:
+    Python: Traceback (most recent call last):'; the line is now the exception it raised."""
+    (tmp_path / "tiny.glb").write_bytes(b"glTF")
+    p = _cli("fit", tmp_path / "tiny.glb", "--links", "2", "-q")
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(lines) == 1, p.stderr
+    assert "Cannot import tiny.glb: struct.error: " in lines[0] and "Traceback" not in lines[0], lines
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="file names that are not UTF-8 (POSIX bytes)")
+def test_a_sequence_of_files_named_in_other_bytes_is_read(rod, tmp_path):
+    """OBJ files named in bytes that are not UTF-8: 'internal error: TypeError: BlendDataMeshes.new():
+    ... surrogates not allowed' after reading them; now the mesh takes the name with U+FFFD."""
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    faces = "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in rod.faces)
+    for i, pose in enumerate([rod.vertices, *(rod.vertices + d for d in rod.displacements)]):
+        text = "".join(f"v {x} {y} {z}\n" for x, y, z in pose) + faces
+        (folder / os.fsdecode(b"pos\xe9_%03d.obj" % i)).write_text(text)
+    p = _cli("fit", folder, "--links", "3", "-q", "-o", tmp_path / "o.npz", "--blend", tmp_path / "o.blend")
+    assert p.returncode == 0 and p.stderr == "", p.stderr
+    assert (tmp_path / "o.blend").is_file() and (tmp_path / "o.npz").is_file()
