@@ -294,9 +294,8 @@ BLENDER_MAX = 1e19
 
 def _check_blender_range(sc, a) -> None:
     """_BadInput (before the fit) when the scan's positions are beyond what Blender's outputs hold."""
-    from .scan import _magnitude
-    fields = _magnitude(sc.greens) * sc.probe_load if sc.greens is not None else _magnitude(sc.displacements)
-    reach = _magnitude(sc.vertices) + fields
+    from .scan import reach as reach_of
+    reach = reach_of(sc)
     if reach > BLENDER_MAX:
         what = "--" + "/--".join(k for k in ("blend", "glb", "fbx", "png") if getattr(a, k))
         raise _BadInput(f"{what}: the scan's positions reach {reach:.3g}; Blender holds them as 32-bit floats, "

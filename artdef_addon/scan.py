@@ -116,6 +116,14 @@ def _magnitude(a: np.ndarray) -> float:
     return max(abs(float(a.max())), abs(float(a.min()))) if a.size else 0.0
 
 
+def reach(scan: Scan) -> float:
+    """The largest coordinate magnitude a pose of ``scan`` can reach, max |vertex| + max |field|
+    (from the arrays' extremes, without a copy of the fields)."""
+    fields = (_magnitude(np.asarray(scan.greens)) * float(scan.probe_load) if scan.greens is not None
+              else _magnitude(np.asarray(scan.displacements)))
+    return _magnitude(np.asarray(scan.vertices)) + fields
+
+
 def _as_float(name, a, ndim):
     a = np.asarray(a)
     if a.dtype.kind not in "fiu":
@@ -195,17 +203,6 @@ def _check_scan(scan: Scan) -> Scan:
     n = v.shape[0]
     if n < 3:
         raise ScanError(f"the mesh needs at least 3 vertices, got {n}")
-    extent = np.ptp(v, axis=0)
-    across = float(extent.max())
-    if across == 0:
-        raise ScanError("every vertex is at one point: the mesh has no extent")
-    if across < MIN_SIZE:
-        # else every triangle read as degenerate (their areas underflow), or the fields as 1e40
-        # times a mesh of size 0
-        raise ScanError(f"the mesh is {across:.3g} across, below {MIN_SIZE:.0e}, the smallest the fit works "
-                        f"with (its moments multiply up to four coordinates and would underflow): rescale "
-                        f"the scan (other units)")
-    size = across * float(np.linalg.norm(extent / across))     # the diagonal, without squares that underflow
     f = np.asarray(scan.faces)
     if f.ndim != 2 or f.shape[1] != 3:
         raise ScanError(f"faces must be triangles with shape (T, 3), got {f.shape}"
@@ -243,6 +240,17 @@ def _check_scan(scan: Scan) -> Scan:
     p = float(np.asarray(scan.probe_load))
     if not np.isfinite(p) or p <= 0:
         raise ScanError(f"probe_load must be a positive number, got {p}")
+    extent = np.ptp(v, axis=0)
+    across = float(extent.max())
+    if across == 0:
+        raise ScanError("every vertex is at one point: the mesh has no extent")
+    if across < MIN_SIZE:
+        # else every triangle read as degenerate (their areas underflow), or the fields as 1e40
+        # times a mesh of size 0
+        raise ScanError(f"the mesh is {across:.3g} across, below {MIN_SIZE:.0e}, the smallest the fit works "
+                        f"with (its moments multiply up to four coordinates and would underflow): rescale "
+                        f"the scan (other units)")
+    size = across * float(np.linalg.norm(extent / across))     # the diagonal, without squares that underflow
     # the largest displacement (the fields are greens x probe_load), without a copy of the fields
     fields_top = _magnitude(g) * p if has_g else _magnitude(d)
     if has_g and (p > MAX_MAGNITUDE or not fields_top <= MAX_MAGNITUDE):
