@@ -84,6 +84,9 @@ def _sniff(path) -> None:
     if head.startswith(_NPY_MAGIC):
         raise BadFile(f"{name}: a single .npy array saved under another name, not a .npz archive "
                       "(save with numpy.savez)")
+    if head.startswith(b"\x1f\x8b"):
+        raise BadFile(f"{name}: a gzip-compressed file, not a .npz archive (decompress it with gunzip first; "
+                      "numpy.savez_compressed writes a .npz that is read as it is)")
     if not head.startswith(_ZIP_MAGIC):
         printable = all(32 <= b < 127 or b in b"\t\r\n" for b in head)
         raise BadFile(f"{name}: " + ("a text file, not a .npz archive" if printable

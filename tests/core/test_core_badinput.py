@@ -5,6 +5,7 @@ stderr line naming the file or option; the input is never changed; a failed or i
 leaves the earlier output byte-identical and no temporary behind; legal but unusual meshes fit.
 """
 import errno
+import gzip
 import hashlib
 import importlib.util
 import io
@@ -89,6 +90,8 @@ def bad_scans(rod, d):
     cases["npy under npz name"] = (d / "npy.npz", "single .npy array")
     (d / "text.npz").write_text("vertices 1 2 3\n")
     cases["text file"] = (d / "text.npz", "a text file, not a .npz archive")
+    (d / "gz.npz").write_bytes(gzip.compress(raw))
+    cases["gzip under npz name"] = (d / "gz.npz", "a gzip-compressed file, not a .npz archive")
     (d / "empty.npz").write_bytes(b"")
     cases["empty"] = (d / "empty.npz", "empty")
     cases["enormous header"] = (raw_npz(d / "huge.npz", _members(rod, **{"vertices.npy": _huge_header(rod)})),
@@ -116,7 +119,7 @@ def bad_scans(rod, d):
     return cases
 
 
-CASES = ["truncated", "npy under npz name", "text file", "empty", "enormous header", "string probe_load",
+CASES = ["truncated", "npy under npz name", "text file", "gzip under npz name", "empty", "enormous header", "string probe_load",
          "string vertices", "pickled member", "wrong member names", "not an npy member", "truncated member",
          "NaN", "index out of range", "directory", "missing"]
 
