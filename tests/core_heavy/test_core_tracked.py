@@ -257,6 +257,29 @@ def test_blend_handles_are_not_bones():
     assert linkcount.spurious_links(scan.vertices, scan.faces, fit).tolist() == [False, True, False]
 
 
+def test_unused_links_are_not_bones():
+    """A link that no vertex's skin follows by a quarter (a sliver of two triangles at weight 0.1, as the
+    search kept on new rigs) is not a bone; the same sliver at weight 0.5 is (it moves its vertices)."""
+    from types import SimpleNamespace
+    scan, truth = samples.rod(n_fields=3)
+    lab = truth["face_labels"].copy()
+    P = 3
+    R = np.tile(np.eye(3), (P, 4, 1, 1))
+    t = np.zeros((P, 4, 3))
+    t[:, 2] = [2.0, 0, 0]
+    t[:, 1] = [1.0, 1.0, 0]
+    t[:, 3] = [0.0, 0.0, 3.0]                    # a motion of its own: not interpolating
+    sliver = np.flatnonzero(lab == 1)[:2]
+    lab[sliver] = 3
+    corners = np.unique(scan.faces[sliver])
+    for weight, unused in ((0.1, True), (0.5, False)):
+        w = np.concatenate([truth["weights"], np.zeros((len(scan.vertices), 1))], axis=1)
+        w[corners, 3] = weight * w[corners].sum(axis=1)
+        w[corners, :3] *= 1.0 - weight
+        fit = SimpleNamespace(face_labels=lab, rotations=R, translations=t, weights=w)
+        assert linkcount.spurious_links(scan.vertices, scan.faces, fit).tolist() == [False, False, False, unused]
+
+
 def test_links_auto_drops_interpolating_links_on_smooth_blends():
     """With wide blends (most of each inner arm segment shared with the hub and the outer
     segment), a 12th link is spent inside a blend and moves as a blend of its neighbours: the
