@@ -144,6 +144,11 @@ def read_obj(path):
     indices = _numbers(ftext, np.int64, None)
     if indices is None:
         raise SequenceError(f"{name}: a face index is not a number")
+    big = np.iinfo(np.int64)
+    if indices.size and (indices.max() == big.max or indices.min() == big.min):
+        # numpy's reader saturates a number beyond 64 bits there: it would be named as 2**63 - 1
+        raise SequenceError(f"{name}: a face refers to a vertex number beyond {big.max} (the file has "
+                            f"{len(vertices)} vertices)")
     if len(indices) == 3 * len(flines):
         sizes = np.full(len(flines), 3, dtype=np.int64)
     else:

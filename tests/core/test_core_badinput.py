@@ -641,6 +641,12 @@ def test_special_files_in_a_sequence_are_refused(tmp_path):
     # the vertex number an OBJ face names is repeated as written (OBJ counts from 1)
     with pytest.raises(seq.SequenceError, match=r"a face refers to vertex 9, but the file has 3 vertices"):
         seq.read_mesh(str(tmp_path / "pose_000.obj"))
+    # a number beyond 64 bits is not named as 2**63 - 1 (numpy's reader saturates it)
+    for big in ("99999999999999999999", "-99999999999999999999"):
+        (tmp_path / "big.obj").write_text(f"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 {big}\n")
+        with pytest.raises(seq.SequenceError, match=r"big.obj: a face refers to a vertex number beyond "
+                                                    r"9223372036854775807 \(the file has 3 vertices\)"):
+            seq.read_mesh(str(tmp_path / "big.obj"))
 
 
 def test_malformed_binary_ply_is_one_line(tmp_path):
