@@ -218,6 +218,14 @@ def _rig_state(obj, compat):
     }
 
 
+def _failing_after(real):
+    """``real`` run, then a RuntimeError("forced failure"): a rig build failing just after a stage."""
+    def fail_after(*args, **kwargs):
+        real(*args, **kwargs)
+        raise RuntimeError("forced failure")
+    return fail_after
+
+
 @pytest.mark.parametrize("module,function,scans", _STAGES, ids=[s[1] for s in _STAGES])
 def test_failed_refit_keeps_the_previous_rig(clean_scene, mods, scan_files, monkeypatch,
                                              module, function, scans):
@@ -225,10 +233,7 @@ def test_failed_refit_keeps_the_previous_rig(clean_scene, mods, scan_files, monk
     empties, vertex groups, shape keys, drivers, actions, colours, parent, frame range."""
     owner = getattr(mods, module)
     real = getattr(owner, function)
-
-    def fail_after(*args, **kwargs):
-        real(*args, **kwargs)
-        raise RuntimeError("forced failure")
+    fail_after = _failing_after(real)
 
     for name in scans:
         obj = _import(scan_files[name])
@@ -255,10 +260,7 @@ def test_failed_first_fit_keeps_the_preview_colours(clean_scene, mods, scan_file
     """Preview Links' face colours, made before a first fit whose rig build fails, stay."""
     owner = getattr(mods, module)
     real = getattr(owner, function)
-
-    def fail_after(*args, **kwargs):
-        real(*args, **kwargs)
-        raise RuntimeError("forced failure")
+    fail_after = _failing_after(real)
 
     for name in scans:
         obj = _import(scan_files[name])

@@ -712,9 +712,9 @@ def _play_clip(clip):
                     ad.action_slot = ad.action.slots[0]
 
 
-def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
-    """A character with two clips (Walk 1-21, Wave 1-11) in one glTF: one rig, one
-    animation per clip at the clip's own frames, each reproducing its source clip."""
+def _two_clip_character():
+    """The test character with two clips: Walk (its action, frames 1-21) and Wave (keys at 1, 6, 11,
+    on an NLA track named Wave). Returns (mesh, armature, walk, wave)."""
     obj, arm = build_character(last_frame=21)
     walk = arm.animation_data.action
     walk.name = "Walk"
@@ -728,6 +728,13 @@ def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
     track = arm.animation_data.nla_tracks.new()
     track.name = "Wave"
     track.strips.new("Wave", 1, wave)
+    return obj, arm, walk, wave
+
+
+def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
+    """A character with two clips (Walk 1-21, Wave 1-11) in one glTF: one rig, one
+    animation per clip at the clip's own frames, each reproducing its source clip."""
+    _two_clip_character()
     src = tmp_path / "two.glb"
     assert bpy.ops.export_scene.gltf(filepath=str(src), export_format='GLB') == {'FINISHED'}
     out = tmp_path / "rig.glb"
@@ -798,17 +805,7 @@ def test_refit_of_several_clips_in_blender(clean_scene, tmp_path, monkeypatch):
     from test_blender_versions import _rig_state
     compat = importlib.import_module(ADDON_MODULE + ".operators.compat")
     rig = importlib.import_module(ADDON_MODULE + ".operators.rig")
-    obj, arm = build_character(last_frame=21)
-    walk = arm.animation_data.action
-    walk.name = "Walk"
-    wave = bpy.data.actions.new("Wave")
-    arm.animation_data.action = wave
-    for f in (1, 6, 11):
-        for i, n in enumerate(BONES):
-            arm.pose.bones[n].rotation_euler = (0.0, 0.0, 0.5 * math.sin(f / 3 + i))
-            arm.pose.bones[n].keyframe_insert("rotation_euler", frame=f)
-    arm.animation_data.action = walk
-    arm.animation_data.nla_tracks.new().strips.new("Wave", 1, wave)
+    _two_clip_character()
     src = tmp_path / "two.glb"
     assert bpy.ops.export_scene.gltf(filepath=str(src), export_format='GLB') == {'FINISHED'}
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
