@@ -294,7 +294,11 @@ BLENDER_MAX = 1e19
 
 def _check_blender_range(sc, a) -> None:
     """_BadInput (before the fit) when the scan's positions are beyond what Blender's outputs hold."""
-    from .scan import reach as reach_of
+    from .scan import reach as reach_of, repeated_load_vertex
+    repeated = repeated_load_vertex(sc)
+    if repeated is not None:
+        what = "--" + "/--".join(k for k in ("blend", "glb", "fbx", "png") if getattr(a, k))
+        raise _BadInput(f"{what}: {repeated}, or fit without the Blender outputs")
     reach = reach_of(sc)
     if reach > BLENDER_MAX:
         what = "--" + "/--".join(k for k in ("blend", "glb", "fbx", "png") if getattr(a, k))

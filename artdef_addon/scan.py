@@ -124,6 +124,23 @@ def reach(scan: Scan) -> float:
     return _magnitude(np.asarray(scan.vertices)) + fields
 
 
+def repeated_load_vertex(scan: Scan) -> str | None:
+    """Why the Blender layer cannot hold ``scan``'s load points, or None: it marks one load point per
+    vertex (the integer attribute ``artdef_load_index``), so a vertex listed twice in
+    ``load_vertices`` is refused there before the fit (the core itself fits such a scan)."""
+    if scan.load_vertices is None:
+        return None
+    lv = np.asarray(scan.load_vertices).ravel()
+    values, counts = np.unique(lv, return_counts=True)
+    if not np.any(counts > 1):
+        return None
+    vertex = int(values[counts > 1][0])
+    points = np.nonzero(lv == vertex)[0]
+    return (f"vertex {vertex} is listed {len(points)} times in load_vertices (load points "
+            f"{', '.join(str(int(k)) for k in points)}); Blender holds one load point per vertex: "
+            f"keep one of them and its three greens columns")
+
+
 def _as_float(name, a, ndim):
     a = np.asarray(a)
     if a.dtype.kind not in "fiu":

@@ -151,6 +151,9 @@ def write_scan(mesh, scan):
     if n != len(scan.vertices):
         raise _scan.ScanError(
             f"the scan has {len(scan.vertices)} vertices but the mesh has {n}")
+    repeated = _scan.repeated_load_vertex(scan)
+    if repeated is not None:
+        raise _scan.ScanError(repeated)   # else a later load point overwrote the vertex's mark
     clear_scan(mesh)
     fields = _field_arrays(scan)
     width = max(3, len(str(len(fields) - 1)))

@@ -53,6 +53,23 @@ def test_import_reports_the_boundarys_one_line(clean_scene, rod, tmp_path):
         assert digest(path) == before
 
 
+def test_a_repeated_load_vertex_is_refused_at_import(clean_scene, tmp_path):
+    """A Green's scan listing one vertex as two load points: Blender marks one load point per vertex,
+    so the import refuses it with one line naming the vertex and creates nothing (it used to import,
+    the later load point overwriting the mark, and every fit then failed with 'the load vertex
+    numbering is damaged')."""
+    sc = samples.make("greens_rod")
+    lv = np.asarray(sc.load_vertices)
+    dup = S.Scan(sc.vertices, sc.faces, greens=np.concatenate([sc.greens, sc.greens[:, :3]], axis=1),
+                 load_vertices=np.r_[lv, lv[0]], support_vertices=sc.support_vertices)
+    path = tmp_path / "dup.npz"
+    files.write_scan(path, dup)
+    with pytest.raises(RuntimeError) as err:
+        bpy.ops.artdef.import_scan(filepath=str(path))
+    assert f"vertex {int(lv[0])} is listed 2 times in load_vertices (load points 0, {len(lv)})" in str(err.value)
+    assert (len(bpy.data.objects), len(bpy.data.meshes)) == (0, 0)
+
+
 @pytest.mark.skipif(not NEW_BLENDER, reason="the Blender fit needs Blender 5")
 def test_degenerate_and_unreferenced_accepted_as_on_the_command_line(clean_scene, rod, tmp_path):
     """Triangles that repeat a vertex and vertices in no triangle: the command line fits them, and so

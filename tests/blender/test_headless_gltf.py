@@ -464,3 +464,22 @@ def test_rotation_only_on_a_greens_scan_is_refused_before_the_fit(greens_glb, tm
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "--rotation-only applies to tracked scans" in lines[0], proc
     assert "estimate" not in proc.stdout and not (tmp_path / "r.glb").exists()
+
+
+def test_a_repeated_load_vertex_is_refused_before_the_fit_with_blender_outputs(greens_glb, tmp_path):
+    """Blender holds one load point per vertex: --glb on a scan listing a vertex twice is refused with
+    one line before the fit (it used to fit, then fail in the Blender stage as an internal error);
+    without Blender outputs the core still fits it."""
+    d = dict(np.load(greens_glb["scan"]))
+    d["load_vertices"] = np.r_[d["load_vertices"], d["load_vertices"][-1]]
+    d["greens"] = np.concatenate([d["greens"], d["greens"][:, -3:]], axis=1)
+    scan = tmp_path / "dup.npz"
+    np.savez(scan, **d)
+    proc = _run(["-m", "artdef_addon", "fit", str(scan), "--links", str(LINKS), "--glb", str(tmp_path / "d.glb")],
+                cwd=tmp_path)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc
+    assert f"--glb: vertex {int(d['load_vertices'][-1])} is listed 2 times in load_vertices" in lines[0], lines
+    assert "estimate" not in proc.stdout and not (tmp_path / "d.glb").exists()
+    _ok(_run(["-m", "artdef_addon", "fit", str(scan), "--links", str(LINKS), "-q", "-o", str(tmp_path / "d.npz")],
+             cwd=tmp_path))
