@@ -397,6 +397,10 @@ def _cmd_fit(a) -> int:
             if not a.quiet:
                 for line in _warnings_of(import_log, {}):
                     print(line)
+                dropped = prepared.data.get("artdef_dropped_faces") if prepared is not None else None
+                if dropped:
+                    print(f"note: {dropped} faces of {a.scan} were left out: they repeat a vertex or another "
+                          "face, which a Blender mesh cannot hold")
         except RuntimeError as exc:
             line = str(exc).splitlines()[0] if str(exc) else "cannot read the file"
             if not any(os.path.basename(p.rstrip("/")) in line for p in (a.scan, *a.clip)):

@@ -403,6 +403,10 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper, FrameRang
             bpy.data.meshes.remove(mesh)
             self.report({'ERROR'}, f"Cannot import the mesh sequence: {err}")
             return {'CANCELLED'}
+        # faces that repeat a vertex or another face: Mesh.validate left them out (said, not silent)
+        dropped = len(seq.sizes) - len(mesh.polygons)
+        if dropped:
+            mesh["artdef_dropped_faces"] = dropped
         mesh["artdef_source"] = _text(os.path.basename(paths[0]))
         mesh["artdef_rest_file"] = _text(os.path.basename(paths[rest]))
         # replay timing: a file's number is its frame (the rest file and files equal to it: rest)
@@ -418,8 +422,14 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper, FrameRang
                               f"vertices, {scan.n_fields} fields, rest "
                               f"{_text(os.path.basename(paths[rest]))}"
                               + (f"; {skipped} files equal to the rest skipped" if skipped else "")
+                              + (f"; {dropped} of the files' {len(seq.sizes)} faces left out ({DROPPED_WHY})"
+                                 if dropped else "")
                               + f" ({time.perf_counter() - t0:.2f} s)")
         return {'FINISHED'}
+
+
+#: why a sequence's face is left out of the mesh (the import's report and the command line's note)
+DROPPED_WHY = "they repeat a vertex or another face, which a Blender mesh cannot hold"
 
 
 def _text(name):

@@ -652,6 +652,26 @@ def _write_obj(path, verts, polys):
         f.write("".join("f " + " ".join(str(i + 1) for i in p) + "\n" for p in polys))
 
 
+def test_faces_a_blender_mesh_cannot_hold_are_said_to_be_left_out(clean_scene, tmp_path):
+    """A sequence whose files repeat a face and have a face repeating a vertex: the import leaves both
+    out (Mesh.validate) and says so, in Blender and on the command line."""
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [2, 0, 0], [2, 1, 0]], dtype=float)
+    polys = [[0, 1, 2], [1, 3, 2], [1, 4, 3], [4, 5, 3], [0, 1, 2], [0, 0, 1]]
+    for k in range(4):
+        v = verts.copy()
+        far = v[:, 0] > 1
+        v[far, 0] = 1 + np.cos(0.2 * k) * (v[far, 0] - 1)
+        v[far, 2] = np.sin(0.2 * k) * (verts[far, 0] - 1)
+        _write_obj(tmp_path / f"pose_{k:03d}.obj", v, polys)
+    assert bpy.ops.artdef.import_mesh_sequence(filepath=str(tmp_path / "pose_000.obj")) == {'FINISHED'}
+    mesh = bpy.context.view_layer.objects.active.data
+    assert len(mesh.polygons) == 4 and mesh["artdef_dropped_faces"] == 2
+    proc = _run(["-m", "artdef_addon", "fit", str(tmp_path), "--links", "2", "-o", str(tmp_path / "r.npz")],
+                cwd=tmp_path)
+    _ok(proc)
+    assert f"note: 2 faces of {tmp_path} were left out: they repeat a vertex or another face" in proc.stdout
+
+
 @pytest.mark.parametrize("kind", ["fbx", "abc", "obj-sequence"])
 def test_cli_fits_fbx_alembic_and_sequences(clean_scene, tmp_path, kind):
     obj, _arm = build_character(last_frame=21)
