@@ -292,16 +292,16 @@ def blender_layer():
 BLENDER_MAX = 1e19
 
 
-def _check_blender_range(sc, a) -> None:
-    """_BadInput (before the fit) when the scan's positions are beyond what Blender's outputs hold."""
+def _check_for_blender(sc, a) -> None:
+    """_BadInput (before the fit) when the Blender outputs cannot hold the scan: a vertex listed as two
+    load points, or positions beyond what Blender's 32-bit floats hold."""
     from .scan import reach as reach_of, repeated_load_vertex
+    what = "--" + "/--".join(k for k in ("blend", "glb", "fbx", "png") if getattr(a, k))
     repeated = repeated_load_vertex(sc)
     if repeated is not None:
-        what = "--" + "/--".join(k for k in ("blend", "glb", "fbx", "png") if getattr(a, k))
         raise _BadInput(f"{what}: {repeated}, or fit without the Blender outputs")
     reach = reach_of(sc)
     if reach > BLENDER_MAX:
-        what = "--" + "/--".join(k for k in ("blend", "glb", "fbx", "png") if getattr(a, k))
         raise _BadInput(f"{what}: the scan's positions reach {reach:.3g}; Blender holds them as 32-bit floats, "
                         f"whose squares overflow beyond about {BLENDER_MAX:.0e}: rescale the scan (other units), or fit "
                         f"without the Blender outputs")
@@ -399,15 +399,14 @@ def _cmd_fit(a) -> int:
                     print(line)
                 dropped = prepared.data.get("artdef_dropped_faces") if prepared is not None else None
                 if dropped:
-                    print(f"note: {dropped} faces of {a.scan} were left out: they repeat a vertex or another "
-                          "face, which a Blender mesh cannot hold")
+                    print(f"note: {dropped} faces of {a.scan} were left out: {wording.DROPPED_FACES}")
         except RuntimeError as exc:
             line = str(exc).splitlines()[0] if str(exc) else "cannot read the file"
             if not any(os.path.basename(p.rstrip("/")) in line for p in (a.scan, *a.clip)):
                 line = f"{a.scan}: {line}"      # an importer's own message names no file
             raise _BadInput(line) from None
     if blender:
-        _check_blender_range(sc, a)
+        _check_for_blender(sc, a)
     t_load = time.perf_counter() - t0
     if not a.quiet:
         # settings this fit does not use are kept in the result (one settings record for every

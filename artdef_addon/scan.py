@@ -116,12 +116,17 @@ def _magnitude(a: np.ndarray) -> float:
     return max(abs(float(a.max())), abs(float(a.min()))) if a.size else 0.0
 
 
+def _fields_magnitude(greens, displacements, probe_load: float) -> float:
+    """max |field|: of ``greens`` × ``probe_load`` (a Green's scan) or of ``displacements``, from
+    the arrays' extremes, without a copy of the fields."""
+    return _magnitude(greens) * probe_load if greens is not None else _magnitude(displacements)
+
+
 def reach(scan: Scan) -> float:
-    """The largest coordinate magnitude a pose of ``scan`` can reach, max |vertex| + max |field|
-    (from the arrays' extremes, without a copy of the fields)."""
-    fields = (_magnitude(np.asarray(scan.greens)) * float(scan.probe_load) if scan.greens is not None
-              else _magnitude(np.asarray(scan.displacements)))
-    return _magnitude(np.asarray(scan.vertices)) + fields
+    """The largest coordinate magnitude a pose of ``scan`` can reach, max |vertex| + max |field|."""
+    greens = None if scan.greens is None else np.asarray(scan.greens)
+    return _magnitude(np.asarray(scan.vertices)) + _fields_magnitude(
+        greens, np.asarray(scan.displacements), float(scan.probe_load))
 
 
 def repeated_load_vertex(scan: Scan) -> str | None:
@@ -269,7 +274,7 @@ def _check_scan(scan: Scan) -> Scan:
                         f"the scan (other units)")
     size = across * float(np.linalg.norm(extent / across))     # the diagonal, without squares that underflow
     # the largest displacement (the fields are greens x probe_load), without a copy of the fields
-    fields_top = _magnitude(g) * p if has_g else _magnitude(d)
+    fields_top = _fields_magnitude(g, d, p)
     if has_g and (p > MAX_MAGNITUDE or not fields_top <= MAX_MAGNITUDE):
         # each factor within the bound, their product may not be
         raise ScanError(f"greens x probe_load reaches {fields_top:.3g} (probe_load {p:.3g}); the fields must stay "

@@ -1,6 +1,11 @@
 """Plain words about a fit for people, shared by the panel and the command line (pure Python)."""
 
 
+#: why a mesh sequence's face is left out of the Blender mesh (Import Mesh Sequence's report and the
+#: command line's note)
+DROPPED_FACES = "they repeat a vertex or another face, which a Blender mesh cannot hold"
+
+
 def _percent(e):
     """A percentage in words: two significant digits below 10 %, whole numbers above."""
     return f"{e:.2g}%" if e < 10 else f"{e:.0f}%"

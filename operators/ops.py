@@ -74,16 +74,6 @@ def mesh_in_object_mode(cls, context):
     return obj
 
 
-def owns_rig(obj):
-    """Whether ``obj`` has an ArtDef armature of its own (a duplicate of a fitted mesh records the
-    original's armature, which stays the original's)."""
-    arm = obj.artdef.rig
-    if arm is None or not arm.get("artdef_rig"):
-        return False
-    owner = arm.get("artdef_owner")
-    return owner is None or owner == obj
-
-
 def shared_rig_message(obj):
     """One line when another object that uses ``obj``'s mesh data (a linked duplicate) has its
     ArtDef rig on that mesh — its vertex groups and shape keys are the mesh's, so fitting or
@@ -92,7 +82,7 @@ def shared_rig_message(obj):
     if mesh is None or mesh.users < 2:
         return None
     for other in bpy.data.objects:
-        if other != obj and other.data == mesh and owns_rig(other):
+        if other != obj and other.data == mesh and rig.owns_rig(other, other.artdef.rig):
             return (f"'{obj.name}' shares its mesh '{mesh.name}' with '{other.name}', whose ArtDef "
                     f"rig (vertex groups, shape keys) is on that mesh; make '{obj.name}' single-user "
                     f"first (Object > Relations > Make Single User > Object & Data)")

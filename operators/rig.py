@@ -320,6 +320,15 @@ def _remove_clip_tracks(keys):
                     bpy.data.actions.remove(a)
 
 
+def owns_rig(obj, arm) -> bool:
+    """Whether the ArtDef armature ``arm`` (``obj``'s recorded rig) is ``obj``'s own: a duplicate of a
+    fitted mesh records the original's armature (``artdef_owner``), which stays the original's."""
+    if arm is None or not arm.get("artdef_rig"):
+        return False
+    owner = arm.get("artdef_owner")
+    return owner is None or owner == obj
+
+
 def clear_rig(obj, scene=None):
     """Remove everything the last fit created on/around mesh object ``obj``.
 
@@ -345,8 +354,7 @@ def clear_rig(obj, scene=None):
     mod = obj.modifiers.get(MODIFIER_NAME)
     if mod is not None:
         obj.modifiers.remove(mod)
-    owner = arm.get("artdef_owner") if arm is not None else None
-    if arm is not None and arm.get("artdef_rig") and (owner is None or owner == obj):
+    if owns_rig(obj, arm):
         # a duplicate of a fitted mesh points at the original's rig: that one stays
         for child in list(arm.children):
             if child.get("artdef_load") is not None:
@@ -496,8 +504,7 @@ def stash_rig(obj, scene):
         index = list(obj.modifiers).index(mod)
         mod.name = _stash_name(MODIFIER_NAME)
         stash.modifier = (mod.name, index)
-    owner = arm.get("artdef_owner") if arm is not None else None
-    stash.owned = bool(arm is not None and arm.get("artdef_rig") and (owner is None or owner == obj))
+    stash.owned = owns_rig(obj, arm)
     if stash.owned:   # a duplicate's rig is the original's: it stays as it is
         for db in _rig_ids(arm):
             stash.ids.append((db, db.name))

@@ -23,7 +23,7 @@ import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from ..artdef_addon import scan as _scan
+from ..artdef_addon import scan as _scan, wording
 from . import io, menus, rig, sequence
 from .ops import in_object_mode, mesh_in_object_mode
 
@@ -422,14 +422,10 @@ class ARTDEF_OT_import_mesh_sequence(bpy.types.Operator, ImportHelper, FrameRang
                               f"vertices, {scan.n_fields} fields, rest "
                               f"{_text(os.path.basename(paths[rest]))}"
                               + (f"; {skipped} files equal to the rest skipped" if skipped else "")
-                              + (f"; {dropped} of the files' {len(seq.sizes)} faces left out ({DROPPED_WHY})"
-                                 if dropped else "")
+                              + (f"; {dropped} of the files' {len(seq.sizes)} faces left out "
+                                 f"({wording.DROPPED_FACES})" if dropped else "")
                               + f" ({time.perf_counter() - t0:.2f} s)")
         return {'FINISHED'}
-
-
-#: why a sequence's face is left out of the mesh (the import's report and the command line's note)
-DROPPED_WHY = "they repeat a vertex or another face, which a Blender mesh cannot hold"
 
 
 def _text(name):
