@@ -556,6 +556,15 @@ def stash_rig(obj, scene):
     return stash
 
 
+def _names_back(collection, renamed):
+    """Give the items of a Blender ``collection`` their names back: ``renamed`` holds (temporary
+    name, name) pairs of :func:`stash_rig` (an item since removed is passed over)."""
+    for tmp, name in renamed:
+        item = collection.get(tmp)
+        if item is not None:
+            item.name = name
+
+
 def restore_rig(stash):
     """Put back what :func:`stash_rig` set aside, after the new build's pieces were removed
     (:func:`clear_rig` and :func:`remove_new_datablocks`)."""
@@ -563,22 +572,13 @@ def restore_rig(stash):
     st, mesh = obj.artdef, obj.data
     for db, name in stash.ids:
         db.name = name
-    for tmp, name in stash.groups:
-        vg = obj.vertex_groups.get(tmp)
-        if vg is not None:
-            vg.name = name
+    _names_back(obj.vertex_groups, stash.groups)
     keys = mesh.shape_keys
     if keys is not None:
-        for tmp, name in stash.keys:
-            kb = keys.key_blocks.get(tmp)
-            if kb is not None:
-                kb.name = name
+        _names_back(keys.key_blocks, stash.keys)
         ad = keys.animation_data
         if ad is not None:
-            for tmp, name in stash.tracks:
-                track = ad.nla_tracks.get(tmp)
-                if track is not None:
-                    track.name = name
+            _names_back(ad.nla_tracks, stash.tracks)
             if stash.key_action is not None:
                 action, slot = stash.key_action
                 ad.action = action
@@ -587,10 +587,7 @@ def restore_rig(stash):
             elif (not stash.key_animdata and ad.action is None and not len(ad.drivers)
                   and not len(ad.nla_tracks)):
                 keys.animation_data_clear()
-    for tmp, name in stash.attrs:
-        attr = mesh.attributes.get(tmp)
-        if attr is not None:
-            attr.name = name
+    _names_back(mesh.attributes, stash.attrs)
     if stash.modifier is not None:
         mod = obj.modifiers.get(stash.modifier[0])
         if mod is not None:
