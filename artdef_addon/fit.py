@@ -421,8 +421,11 @@ class Segmenter:
         k = medoids.shape[0]
         feats = [self.features[p] for p in all_fields]
         tag = _merge.member_key(np.asarray(all_fields))
+        # the links the seams' refinement leaves as they were keep their medoids (a link's medoids
+        # depend on its members only), also in a Segmenter's first segmentation
+        cache = self._cache() or _merge.SumCache()
         medoids = _merge.link_medoids(feats, self.weights[all_fields], labels_u, k, unit_size=self.unit_size,
-                                      cache=self._cache(), tag=tag)
+                                      cache=cache, tag=tag)
         labels = labels_u[self.unit_of]
         if self.refine:
             R = np.stack([self.features[p].R[medoids[:, i]] for i, p in enumerate(all_fields)])
@@ -432,7 +435,7 @@ class Segmenter:
                                          fixed=self.unit_tri[np.unique(medoids)],
                                          iterations=200 if self.reduced else 10)
             medoids = _merge.link_medoids(feats, self.weights[all_fields], labels[self.unit_tri], k,
-                                          unit_size=self.unit_size, cache=self._cache(), tag=tag)
+                                          unit_size=self.unit_size, cache=cache, tag=tag)
         self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0
         return labels, medoids, all_fields
 
