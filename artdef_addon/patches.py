@@ -32,45 +32,59 @@ def pair_distances(f: FieldFeatures, pairs: np.ndarray) -> np.ndarray:
 
 
 def _coarsen(n: int, adjacency: np.ndarray, agree: np.ndarray, target: int, max_size: int) -> np.ndarray:
-    """Heavy-edge matching rounds (see module docstring); returns patch labels (n,)."""
-    labels = np.arange(n)
-    size = np.ones(n, dtype=np.int64)
+    """Heavy-edge matching rounds (see module docstring); returns patch labels (n,).
+
+    The rounds work on the patch graph: one edge a pair of neighbouring patches, weighted by the
+    largest a over their shared triangle edges. When patches merge, their edges to a neighbour
+    are one edge of the largest of those weights (the same maximum over the shared triangle
+    edges), so a round's work shrinks with the patches instead of passing over every triangle
+    edge each time."""
+    labels = np.arange(n)                # triangle -> patch
+    size = np.ones(n, dtype=np.int64)    # triangles a patch
+    u, w = adjacency.astype(np.int64), agree   # edges as patch ids (pairs keyed below), and their weights
     for _ in range(200):
-        u = labels[adjacency]
         cross = u[:, 0] != u[:, 1]
-        if not cross.any() or labels.max() + 1 <= target:
+        if not cross.any() or len(size) <= target:
             break
-        e = np.sort(u[cross], axis=1)
-        w = agree[cross]
+        n_p = len(size)
+        uc = u[cross]
+        key = np.minimum(uc[:, 0], uc[:, 1]) * n_p + np.maximum(uc[:, 0], uc[:, 1])   # the pair, in order
+        order = np.argsort(key, kind="stable")
+        key, w = key[order], w[cross][order]
         # patch-level distance: the largest over the shared triangle edges
-        order = np.lexsort((e[:, 1], e[:, 0]))
-        e, w = e[order], w[order]
-        first = np.ones(len(e), dtype=bool)
-        first[1:] = np.any(e[1:] != e[:-1], axis=1)
+        first = np.ones(len(key), dtype=bool)
+        first[1:] = key[1:] != key[:-1]
         starts = np.flatnonzero(first)
-        pe = e[starts]
-        pw = np.maximum.reduceat(w, starts)
-        ok = size[pe[:, 0]] + size[pe[:, 1]] <= max_size
+        key = key[starts]
+        u = np.stack([key // n_p, key % n_p], axis=1)   # the patch graph: each pair once
+        w = np.maximum.reduceat(w, starts)
+        ok = size[u[:, 0]] + size[u[:, 1]] <= max_size
         if not ok.any():
             break
-        pe, pw = pe[ok], pw[ok]
+        pe, pw = u[ok], w[ok]
         # each patch's best partner
-        both = np.concatenate([pe, pe[:, ::-1]])
+        # (the least a; of equal ones, the edge met first with the patch first, then second)
+        src = np.concatenate([pe[:, 0], pe[:, 1]])
+        dst = np.concatenate([pe[:, 1], pe[:, 0]])
         bw = np.concatenate([pw, pw])
-        o = np.lexsort((bw, both[:, 0]))
-        both = both[o]
-        head = np.ones(len(both), dtype=bool)
-        head[1:] = both[1:, 0] != both[:-1, 0]
-        best = np.full(labels.max() + 1, -1)
-        best[both[head, 0]] = both[head, 1]
+        least = np.full(n_p, np.inf)
+        np.minimum.at(least, src, bw)
+        hit = np.flatnonzero(bw == least[src])
+        pick = np.full(n_p, len(src))
+        np.minimum.at(pick, src[hit], hit)
+        has = pick < len(src)
+        best = np.full(n_p, -1)
+        best[has] = dst[pick[has]]
         a = np.flatnonzero(best >= 0)
         mutual = a[(best[best[a]] == a) & (a < best[a])]
         if mutual.size == 0:
             break
-        new = np.arange(labels.max() + 1)
+        new = np.arange(n_p)
         new[best[mutual]] = mutual
-        labels = np.unique(new[labels], return_inverse=True)[1]
-        size = np.bincount(labels)
+        inv = (np.cumsum(new == np.arange(n_p)) - 1)[new]           # patch -> merged patch, compact
+        labels = inv[labels]
+        u = inv[u]
+        size = np.bincount(inv, weights=size, minlength=int(inv.max()) + 1).astype(np.int64)
     return labels
 
 
