@@ -14,14 +14,20 @@ PAIRS_PER_SECOND = 3.0e7
 LINKAGE_SECONDS_PER_ENTRY = 9.0e-8
 #: reduced method: seconds per triangle × field of the streamed features and neighbour distances
 #: (its measurement: ``benchmarks/results/core_constants.md``; 8e-6 until stop 26, when the
-#: generated 107k- and 1.03M-triangle scans measured 2.2-3.7e-6 with numpy 2.5 on two threads)
-REDUCED_SECONDS_PER_TRIANGLE_FIELD = 4.0e-6
+#: generated 107k- and 1.03M-triangle scans measured 2.2-3.7e-6 with numpy 2.5 on two threads;
+#: 4e-6 until stop 29, when the features came in blocks and the patches' rounds on the patch
+#: graph: 1.2-1.5e-6 from 17k to 1.03M triangles, CesiumMan's and cheburashka's 1.6-1.7e-6)
+REDUCED_SECONDS_PER_TRIANGLE_FIELD = 1.5e-6
 #: bytes per triangle per field of the cached per-field features
 FEATURE_BYTES = 8 * 63
-#: reduced method: peak bytes per triangle of each field in flight in the patch stream (its features
-#: over every triangle and their temporaries; two fields at a time on two cores). Measured (stop 26):
-#: the features stage's rise of the peak RSS 2,245 MB at 1.03M triangles, 346 MB at 107k
-STREAM_BYTES_PER_TRIANGLE_FIELD = 1050.0
+#: reduced method: peak bytes per triangle of each field in flight in the patch stream (the residual
+#: product's rows and columns and the neighbour distances; two fields at a time on two cores), and
+#: per triangle of one block of its features' temporaries (:data:`patches.STREAM_BLOCK`). Measured
+#: (stop 29): the Segmenter's rise of the peak RSS 1,104 MB at 1.03M triangles × 20 fields, 253 MB at
+#: 107k × 4 (1,050 bytes a triangle and no block until then, when every field's features and their
+#: temporaries were whole-mesh arrays: 2,314 and 316 MB)
+STREAM_BYTES_PER_TRIANGLE_FIELD = 460.0
+STREAM_BYTES_PER_BLOCK_TRIANGLE = 1100.0
 DEFAULT_BUDGET = 2 * 1024 ** 3
 
 
@@ -133,10 +139,14 @@ SOLVE_BYTES_PER_VERTEX = 8.0 * 9 * 9 * 6
 
 
 def stream_bytes(triangles: int, fields: int) -> float:
-    """Peak bytes of the reduced method's patch stream (``fit.Segmenter``): every triangle's features
-    of the fields in flight (two at a time where two cores are free, :func:`metric.worker_count`)."""
+    """Peak bytes of the reduced method's patch stream (``fit.Segmenter``): what every triangle keeps
+    of the fields in flight (two at a time where two cores are free, :func:`metric.worker_count`),
+    and a block of each one's temporaries (:func:`patches.neighbour_distances`)."""
     from .metric import worker_count
-    return STREAM_BYTES_PER_TRIANGLE_FIELD * min(2, worker_count(), max(fields, 1)) * triangles
+    from .patches import STREAM_BLOCK
+    in_flight = min(2, worker_count(), max(fields, 1))
+    return in_flight * (STREAM_BYTES_PER_TRIANGLE_FIELD * triangles
+                        + STREAM_BYTES_PER_BLOCK_TRIANGLE * min(triangles, STREAM_BLOCK))
 
 
 def articulation_cost(vertices: int, fields: int, links: int) -> tuple[float, float]:

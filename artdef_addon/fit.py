@@ -257,10 +257,9 @@ class Segmenter:
         Pc = len(clustered)
 
         def neighbours(p):
-            f = field_features(x0, fields[p], self.faces, rest)
-            z = f.zero_distance().max()
+            d, z = _patches.neighbour_distances(x0, fields[p], self.faces, rest, self.tri_adjacency)
             weights[p] = 1.0 / z if z > 1e-300 else 0.0
-            return weights[p] * _patches.pair_distances(f, self.tri_adjacency)
+            return weights[p] * d
 
         def stream():
             # two fields at a time on two threads (numpy's element-wise work releases the GIL);

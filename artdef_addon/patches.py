@@ -20,15 +20,49 @@ from __future__ import annotations
 import numpy as np
 
 from .clustering import split
-from .metric import FieldFeatures
+from .metric import FieldFeatures, RestGeometry, field_features
 
 
 def pair_distances(f: FieldFeatures, pairs: np.ndarray) -> np.ndarray:
     """ε(i, j) for each row (i, j) of ``pairs`` (no matrix: one dot product a pair)."""
+    return _pair_distances(f.g, f.f, f.r_self, pairs)
+
+
+def _pair_distances(g, fa, r_self, pairs):
     a, b = pairs[:, 0], pairs[:, 1]
-    r_ba = np.sqrt(np.maximum(np.einsum("ij,ij->i", f.g[b], f.f[a]), 0.0))
-    r_ab = np.sqrt(np.maximum(np.einsum("ij,ij->i", f.g[a], f.f[b]), 0.0))
-    return np.abs(r_ba - f.r_self[a]) + np.abs(r_ab - f.r_self[b])
+    r_ba = np.sqrt(np.maximum(np.einsum("ij,ij->i", g[b], fa[a]), 0.0))
+    r_ab = np.sqrt(np.maximum(np.einsum("ij,ij->i", g[a], fa[b]), 0.0))
+    return np.abs(r_ba - r_self[a]) + np.abs(r_ab - r_self[b])
+
+
+#: triangles, and neighbour pairs, a block of :func:`neighbour_distances` takes at once
+STREAM_BLOCK = 65536
+
+
+def neighbour_distances(x0: np.ndarray, u: np.ndarray, faces: np.ndarray, rest: RestGeometry,
+                        pairs: np.ndarray, block: int = STREAM_BLOCK):
+    """One field's ε(i, j) for each row of ``pairs`` (E,) and its largest zero-velocity distance
+    max_t z(t) (:meth:`metric.FieldFeatures.zero_distance`): what the patch stream needs of a field.
+
+    The same numbers as :func:`metric.field_features` and :func:`pair_distances` on the whole mesh,
+    computed ``block`` triangles (and pairs) at a time: of a field's features only the residual
+    product's rows and columns (T, 17) and the own residuals are whole-mesh arrays, so a million
+    triangles' temporaries stay a few MB instead of several GB a field in flight."""
+    T = len(faces)
+    g = np.empty((T, 17))
+    fa = np.empty((T, 17))
+    r_self = np.empty(T)
+    z = 0.0
+    for s in range(0, T, block):
+        e = min(T, s + block)
+        f = field_features(x0, u, faces[s:e],
+                           RestGeometry(rest.m0, rest.R0[s:e], rest.c0[s:e], rest.d0[s:e], rest.s0[s:e]))
+        g[s:e], fa[s:e], r_self[s:e] = f.g, f.f, f.r_self
+        z = max(z, float(f.zero_distance().max()))
+    d = np.empty(len(pairs))
+    for s in range(0, len(pairs), block):
+        d[s:s + block] = _pair_distances(g, fa, r_self, pairs[s:s + block])
+    return d, z
 
 
 def _coarsen(n: int, adjacency: np.ndarray, agree: np.ndarray, target: int, max_size: int) -> np.ndarray:
