@@ -127,6 +127,22 @@ def test_patch_rounds_on_the_patch_graph_match_the_definition():
             assert np.array_equal(got, want)
 
 
+def test_patch_stream_in_blocks_is_the_whole_mesh_computation():
+    """A field's neighbour distances and zero-velocity bound, a block of triangles at a time (the
+    stream's memory at a million triangles), are the whole mesh's to the bit, blocks of any size."""
+    from artdef_addon import clustering
+    from artdef_addon.metric import field_features, rest_geometry
+    scan = samples.make("branching")
+    pairs = clustering.face_adjacency(scan.faces)
+    rest = rest_geometry(scan.vertices, scan.faces)
+    u = scan.displacements[1]
+    f = field_features(scan.vertices, u, scan.faces, rest)
+    want = patches.pair_distances(f, pairs)
+    for block in (97, 1024, len(scan.faces), 10 ** 6):
+        d, z = patches.neighbour_distances(scan.vertices, u, scan.faces, rest, pairs, block=block)
+        assert np.array_equal(d, want) and z == f.zero_distance().max()
+
+
 def test_pair_distances_match_block():
     scan = samples.make("rod")
     from artdef_addon.metric import distance_block, field_features
