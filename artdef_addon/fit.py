@@ -422,7 +422,9 @@ class Segmenter:
         tag = _merge.member_key(np.asarray(all_fields))
         # the links the seams' refinement leaves as they were keep their medoids (a link's medoids
         # depend on its members only), also in a Segmenter's first segmentation
-        cache = self._cache() or _merge.SumCache()
+        cache = self._cache()
+        if cache is None:
+            cache = _merge.SumCache()
         medoids = _merge.link_medoids(feats, self.weights[all_fields], labels_u, k, unit_size=self.unit_size,
                                       cache=cache, tag=tag)
         labels = labels_u[self.unit_of]
