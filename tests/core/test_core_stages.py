@@ -464,3 +464,25 @@ def test_skin_errors_are_each_fields_skin_error_in_any_blocks(monkeypatch, block
     want = sum(np.sum((model.skin(w, R[p], t[p], x0) - (x0 + u[p])) ** 2, axis=1) for p in range(P))
     monkeypatch.setattr(model, "SKIN_BLOCK_BYTES", block_bytes)
     assert np.allclose(model.skin_errors(w, R, t, x0, u), want, rtol=1e-12, atol=0)
+
+
+def test_residual_solve_of_blended_transforms():
+    """model.blended_residual solves B δ = rhs for blends of rotations in closed form (the residual
+    stage at a million vertices): LAPACK's answer to round-off on well and badly conditioned blends,
+    the pseudo-inverse's where B is singular (two opposite rotations blended half and half)."""
+    rng = np.random.default_rng(5)
+    n = 4000
+    R1 = Rotation.from_rotvec(rng.normal(size=(n, 3))).as_matrix()
+    R2 = Rotation.from_rotvec(rng.normal(size=(n, 3))).as_matrix()
+    w = rng.random((n, 1, 1))
+    B = w * R1 + (1 - w) * R2
+    flip = Rotation.from_rotvec(np.pi * np.array([0.0, 0.0, 1.0])).as_matrix()
+    B[:10] = 0.5 * np.eye(3) + 0.5 * flip                   # singular: rank 1
+    rhs = rng.normal(size=(n, 3))
+    d = model.blended_residual(B.reshape(4, n // 4, 3, 3), rhs.reshape(4, n // 4, 3)).reshape(n, 3)
+    ok = np.abs(np.linalg.det(B)) > 1e-10
+    assert not ok[:10].any() and ok[10:].all()
+    want = np.linalg.solve(B[ok], rhs[ok][..., None])[..., 0]
+    scale = np.linalg.cond(B[ok])[:, None] * np.abs(want).max(axis=1, keepdims=True)
+    assert np.all(np.abs(d[ok] - want) <= 1e-13 * scale)
+    assert np.allclose(d[:10], np.einsum("nij,nj->ni", np.linalg.pinv(B[:10]), rhs[:10]))
