@@ -72,12 +72,14 @@ def rest_geometry(x0: np.ndarray, faces: np.ndarray) -> RestGeometry:
 
 
 def field_features(x0: np.ndarray, u: np.ndarray, faces: np.ndarray,
-                   rest: RestGeometry | None = None) -> FieldFeatures:
+                   rest: RestGeometry | None = None, u_mean: np.ndarray | None = None) -> FieldFeatures:
     """Features of one displacement field ``u`` (N,3) on rest positions ``x0`` (N,3).
 
     Pass ``rest`` (:func:`rest_geometry`) when computing many fields of one mesh: the rest frames
     and offsets are then not recomputed. Everything is formed from the displacements of each
     triangle's vertices and the rest offsets, so no deformed position is gathered twice.
+    ``u_mean``: ``u.mean(axis=0)`` when the caller already has it (one field's features taken a
+    block of faces at a time, :func:`patches.neighbour_distances`).
     """
     if rest is None:
         rest = rest_geometry(x0, faces)
@@ -100,7 +102,7 @@ def field_features(x0: np.ndarray, u: np.ndarray, faces: np.ndarray,
     del diff
     # centred copies for the product form
     m0 = rest.m0
-    m1 = m0 + u.mean(axis=0)
+    m1 = m0 + (u.mean(axis=0) if u_mean is None else u_mean)
     cc0 = c0 - m0
     cc1 = c1 - m1
     tc = t + R @ m0 - m1

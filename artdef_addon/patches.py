@@ -53,10 +53,11 @@ def neighbour_distances(x0: np.ndarray, u: np.ndarray, faces: np.ndarray, rest: 
     fa = np.empty((T, 17))
     r_self = np.empty(T)
     z = 0.0
+    u_mean = u.mean(axis=0)
     for s in range(0, T, block):
         e = min(T, s + block)
         f = field_features(x0, u, faces[s:e],
-                           RestGeometry(rest.m0, rest.R0[s:e], rest.c0[s:e], rest.d0[s:e], rest.s0[s:e]))
+                           RestGeometry(rest.m0, rest.R0[s:e], rest.c0[s:e], rest.d0[s:e], rest.s0[s:e]), u_mean)
         g[s:e], fa[s:e], r_self[s:e] = f.g, f.f, f.r_self
         z = max(z, float(f.zero_distance().max()))
     d = np.empty(len(pairs))
