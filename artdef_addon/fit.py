@@ -434,7 +434,7 @@ class Segmenter:
             labels = _merge.refine_seams(self.scan.vertices, _select(self.scan.fields(), all_fields), self.faces,
                                          R, t, self.weights[all_fields], labels, self.tri_adjacency,
                                          fixed=self.unit_tri[np.unique(medoids)],
-                                         iterations=200 if self.reduced else 10)
+                                         iterations=200 if self.reduced else 10, cache=self._cache(), tag=tag)
             medoids = _merge.link_medoids(feats, self.weights[all_fields], labels[self.unit_tri], k,
                                           unit_size=self.unit_size, cache=cache, tag=tag)
         self.timings["merge"] = self.timings.get("merge", 0.0) + time.perf_counter() - t0

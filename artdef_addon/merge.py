@@ -185,7 +185,8 @@ SEAM_BLOCK = 4_000_000
 
 def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.ndarray, t: np.ndarray,
                  weights: np.ndarray, labels: np.ndarray, adjacency: np.ndarray,
-                 iterations: int = 10, margin: float = 1.0 + 1e-9, fixed=None) -> np.ndarray:
+                 iterations: int = 10, margin: float = 1.0 + 1e-9, fixed=None, cache: SumCache | None = None,
+                 tag: bytes = b"") -> np.ndarray:
     """Give each seam triangle to the side of the seam that holds most of its skin weight.
 
     A triangle on a linearly blended seam moves in between its neighbours, so the clustering
@@ -198,21 +199,36 @@ def refine_seams(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, R: np.nd
     smoothly blended regions, where the medoid motions are themselves blended, stay as the
     clustering put them). Triangles in ``fixed`` (the links' medoids) never move, so no link
     empties. Iterated until no seam moves. An addition to the paper (docs/method.md, "Deviations from the paper").
+    ``cache`` / ``tag`` as in :func:`merge_clusters`: a link's errors e_l depend on its motions only, so
+    a link whose robust motions another segmentation of the same fields had (the link-count search's
+    counts share most of their links) takes them from there.
     """
     labels = labels.copy()
     k = R.shape[1]
     T = labels.shape[0]
     E = np.zeros((k, x0.shape[0]))
+    todo, keys = np.arange(k), None
+    if cache is not None:
+        keys = [(tag, b"seam", digest(R[:, l], t[:, l], weights)) for l in range(k)]
+        hits = [cache.get(key) for key in keys]
+        for l, hit in enumerate(hits):
+            if hit is not None:
+                E[l] = hit
+        todo = np.array([l for l, hit in enumerate(hits) if hit is None], dtype=np.int64)
     links = max(1, SEAM_BLOCK // max(3 * x0.shape[0], 1))     # links whose residuals are taken at once
     for p in range(fields.shape[0]):
         if weights[p]:
             X = x0 + fields[p]
-            for l0 in range(0, k, links):
+            for l0 in range(0, len(todo), links):
+                ls = todo[l0:l0 + links]
                 # (links, N, 3) residuals of field p
-                d = np.matmul(x0, np.swapaxes(R[p, l0:l0 + links], -1, -2))
-                d += t[p, l0:l0 + links, None, :]
+                d = np.matmul(x0, np.swapaxes(R[p, ls], -1, -2))
+                d += t[p, ls, None, :]
                 d -= X
-                E[l0:l0 + links] += weights[p] * np.sqrt(np.einsum("lni,lni->ln", d, d))
+                E[ls] += weights[p] * np.sqrt(np.einsum("lni,lni->ln", d, d))
+    if cache is not None:
+        for l in todo:
+            cache.put(keys[l], E[l].copy())
     scale = E.max() if E.size else 1.0
     # every residual zero (fields that are one rigid motion): equal costs, not 1/1e-312 = inf
     inv = 1.0 / (E + (1e-12 * max(scale, 1e-300) if scale > 0 else 1.0))
