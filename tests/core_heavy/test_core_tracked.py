@@ -239,17 +239,23 @@ def test_interpolating_links_known_ratios():
     assert np.isclose(linkcount.interpolating_links(x0, faces, lab, R, t)[1], 1.0)
 
 
+def _rod_links(n_links):
+    """The rod of three fields with ``n_links`` link motions for the non-bone rules: every link at rest
+    but link 1 (shifted off the line, ρ = 1/2: not interpolating) and link 2 (shifted along it); the
+    scan, its truth, the true face labels (a copy), R (3, n_links, 3, 3) and t (3, n_links, 3)."""
+    scan, truth = samples.rod(n_fields=3)
+    R = np.tile(np.eye(3), (3, n_links, 1, 1))
+    t = np.zeros((3, n_links, 3))
+    t[:, 2] = [2.0, 0, 0]
+    t[:, 1] = [1.0, 1.0, 0]
+    return scan, truth, truth["face_labels"].copy(), R, t
+
+
 def test_blend_handles_are_not_bones():
     """A link whose skin weights reach far beyond its own triangles (here: it keeps the rod's
     middle third's weights but owns two triangles) is a blend handle; with its third it is a bone."""
     from types import SimpleNamespace
-    scan, truth = samples.rod(n_fields=3)
-    lab = truth["face_labels"].copy()
-    P = 3
-    R = np.tile(np.eye(3), (P, 3, 1, 1))
-    t = np.zeros((P, 3, 3))
-    t[:, 2] = [2.0, 0, 0]
-    t[:, 1] = [1.0, 1.0, 0]                      # ρ = 1/2: not interpolating
+    scan, truth, lab, R, t = _rod_links(3)
     fit = SimpleNamespace(face_labels=lab, rotations=R, translations=t, weights=truth["weights"])
     assert not linkcount.spurious_links(scan.vertices, scan.faces, fit).any()
     middle = np.flatnonzero(lab == 1)
@@ -261,13 +267,7 @@ def test_unused_links_are_not_bones():
     """A link that no vertex's skin follows by a quarter (a sliver of two triangles at weight 0.1, as the
     search kept on new rigs) is not a bone; the same sliver at weight 0.5 is (it moves its vertices)."""
     from types import SimpleNamespace
-    scan, truth = samples.rod(n_fields=3)
-    lab = truth["face_labels"].copy()
-    P = 3
-    R = np.tile(np.eye(3), (P, 4, 1, 1))
-    t = np.zeros((P, 4, 3))
-    t[:, 2] = [2.0, 0, 0]
-    t[:, 1] = [1.0, 1.0, 0]
+    scan, truth, lab, R, t = _rod_links(4)
     t[:, 3] = [0.0, 0.0, 3.0]                    # a motion of its own: not interpolating
     sliver = np.flatnonzero(lab == 1)[:2]
     lab[sliver] = 3
