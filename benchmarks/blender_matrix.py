@@ -11,7 +11,7 @@ without scipy, as Blender itself ships none), with a private user directory:
 3. import    ``bpy.ops.artdef.import_scan`` of a tracked and a Green's sample scan
 4. fit tracked  ``bpy.ops.artdef.fit`` on the tracked rod: armature, replay action
 5. fit Green's  ``bpy.ops.artdef.fit`` on the Green's rod: drivers on the rig
-6. glTF + validator  Blender's glTF exporter (``artdef_addon.headless.export_glb``)
+6. glTF + validator  Export Rig (``bpy.ops.artdef.export_rig``, Blender's glTF exporter)
              for both rigs; the Khronos validator (``scripts/validate_gltf.js``) must
              report 0 errors
 7. failed fit   a fit whose rig build raises half-way (monkeypatched) and a fit
@@ -129,12 +129,16 @@ def fit_greens():
     assert bone_drivers > 0 and key_drivers > 0, (bone_drivers, key_drivers)
     return "%d bone + %d shape-key drivers" % (bone_drivers, key_drivers)
 def gltf():
-    headless = pkg("artdef_addon.headless")
     out = []
     for name in ("rod", "greens_rod"):
         obj = bpy.data.objects[S[name]]
+        for o in bpy.data.objects:
+            o.select_set(o == obj)
+        bpy.context.view_layer.objects.active = obj
         path = os.path.join(out_dir, name + ".glb")
-        headless.export_glb(path, obj, obj.artdef.rig)
+        with bpy.context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+            assert bpy.ops.artdef.export_rig(filepath=path, export_format="GLB") == {"FINISHED"}
+        assert os.path.getsize(path) > 0, path
         out.append(path)
     res["glb"] = out
 def counts():
@@ -267,6 +271,7 @@ def main():
     results = []
     for item in a.pythons:
         label, python = item.split("=", 1)
+        python = os.path.abspath(python)   # the probe runs in its own directory (not resolved: a venv's link)
         print(f"blender_matrix: {label} ({python}) ...", flush=True)
         results.append(run_one(label, python, Path(a.zip).resolve()))
     text = table(results, a.zip)
