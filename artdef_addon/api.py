@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import sys
 import threading
+import time
 import types
 from collections import OrderedDict
 
@@ -161,15 +162,20 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
         reason = ""
         result = None
         if auto:
+            t_search = time.perf_counter()
             choice = _linkcount.choose_links(seg, max_links=o.max_links, progress=progress)
+            search = time.perf_counter() - t_search
             links, reason = int(choice.links), str(choice.reason)
             errors = [float(e) for e in choice.errors]
             result = choice.reusable(o.mode, o.motion, o.skin)   # the chooser fitted this count already
             if result is not None:
                 result.p_max = o.p_max
+                result.timings = _search_timings(search, result.timings, 0.0)
         if result is None:
             result = _fit.fit(scan, links, mode=o.mode, motion=o.motion, p_max=o.p_max,
                               progress=progress, segmenter=seg, skin=o.skin)
+            if auto:
+                result.timings = _search_timings(search, result.timings, result.timings.get("total", 0.0))
         result.link_reason = reason
         result.link_errors = errors if auto else []
         result.options = requested     # as asked ("auto" kept); o.resolved(kind) is what ran
@@ -180,6 +186,15 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
     finally:
         _checkin(key, seg, keep=seg_ok)
     return result
+
+
+def _search_timings(search: float, fit_timings: dict, after: float) -> dict:
+    """A ``links auto`` fit's seconds per stage: ``"links"``, the link-count search (the fits it
+    made included, the chosen count's among them when it is reused), then the chosen fit's own
+    stages; ``"total"`` is the search and the fit made ``after`` it."""
+    t = {"links": search, **fit_timings}
+    t["total"] = search + after
+    return t
 
 
 def segment(scan: Scan, links: int, options: FitOptions | None = None, progress=None):

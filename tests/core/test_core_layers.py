@@ -116,6 +116,11 @@ def test_public_fit_from_a_file_auto_links_and_save_load(tmp_path):
                               options=FitOptions(max_links=6))
     assert result.n_links == 3 and result.link_reason.startswith("links auto: chose 3")
     assert result.options == FitOptions(max_links=6)
+    # the search is its own stage in the timings, first, and the total counts it
+    tm = result.timings
+    stages = sum(v for k, v in tm.items() if k not in ("links", "total"))
+    assert list(tm)[0] == "links" and tm["links"] > 0
+    assert tm["total"] >= tm["links"] and tm["total"] >= stages
     result.save(tmp_path / "r.npz")
     back = artdef_addon.FitResult.load(tmp_path / "r.npz")
     np.testing.assert_array_equal(back.weights, result.weights)
@@ -123,6 +128,7 @@ def test_public_fit_from_a_file_auto_links_and_save_load(tmp_path):
     assert back.link_reason == result.link_reason
     # the same fit through the old entry, given the count: same numbers
     ref = artdef_addon.fit.fit(artdef_addon.load_scan(path), 3)
+    assert "links" not in ref.timings
     np.testing.assert_array_equal(ref.face_labels, result.face_labels)
     np.testing.assert_allclose(ref.weights, result.weights, atol=1e-12)
 
