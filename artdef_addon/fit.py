@@ -648,6 +648,12 @@ def _trial_fields(st: FitState):
     return st.trial_fields
 
 
+def _n_trial_fields(st: FitState) -> int:
+    """How many fields the trials' decompositions use (:func:`_trial_fields`)."""
+    pick = _trial_fields(st)
+    return st.fields.shape[0] if isinstance(pick, slice) else len(pick)
+
+
 def _relabelled(st: FitState, labels: np.ndarray) -> None:
     """New ``labels (T,)``: the links' medoid units and their robust motions again (relabel, split)."""
     seg = st.seg
@@ -692,7 +698,7 @@ def stage_split(st: FitState) -> None:
     falls (:func:`splits.split_links`); then, as after the relabel, the links' robust motions of
     the new labels and the skin again (from the split's motions). ``labels``, ``R``, ``t``,
     ``weights``, ``Rs``, ``ts``; ``splits`` counts the kept splits. Scans above the swaps' budget
-    (``swaps.SWAP_BUDGET`` vertex-fields), scans with support vertices and Green's scans are not
+    (``swaps.SWAP_BUDGET`` vertices × the fields the trials use, at most ``skinning.SAMPLE_FIELDS``), scans with support vertices and Green's scans are not
     split. Last, on every tracked scan with the refined skin, the faces follow the skin the rig
     keeps (:func:`_dominant_skin_labels`)."""
     _split_links(st)
@@ -721,10 +727,12 @@ def _split_links(st: FitState) -> None:
     scan, seg, L = st.scan, st.seg, st.n_links
     st.splits = 0
     # a scan with support vertices: the decomposition has no world link, so part of its error is the
-    # support's blend that no split can explain (a 4-field rod lost its true partition to a split there)
+    # support's blend that no split can explain (a 4-field rod lost its true partition to a split there).
+    # The budget is the relabelling's swaps' (:func:`merge.dominant_labels`), on the fields the trials use:
+    # a scan given more poses than the sample keeps its split stage as it keeps its swaps
     if not (st.skin == "refined" and scan.kind != "greens" and L > 2 and st.fields.shape[0] > 0
             and scan.support_vertices is None
-            and scan.n_vertices * st.fields.shape[0] <= _swaps.SWAP_BUDGET):
+            and scan.n_vertices * _n_trial_fields(st) <= _swaps.SWAP_BUDGET):
         return
     x0, faces = scan.vertices, scan.faces
     # the trials decide labels only where the scan has many fields: then on a spread of them, and
@@ -930,8 +938,10 @@ def _result(st: FitState, timings: dict) -> FitResult:
                     timings=timings, probe_load=scan.probe_load, e_rms=fid.e_rms,
                     vertex_mean_error_percent=fid.vertex_mean_percent)
     if st.swaps is None:
-        res.notes.append(f"link swaps skipped: {N:,} vertices × {P} fields is above their budget of "
-                         f"{_swaps.SWAP_BUDGET:,} (each trial re-runs the skin decomposition)")
+        K = _n_trial_fields(st)
+        res.notes.append(f"link swaps and splits skipped: {N:,} vertices × {K} fields"
+                         + (f" (a spread of the {P})" if K < P else "")
+                         + f" is above their budget of {_swaps.SWAP_BUDGET:,} (each trial re-runs the skin decomposition)")
     if st.swaps:
         res.notes.append(f"{st.swaps} link swap(s): links that explained little were re-seeded where the skin "
                          f"fitted worst (tracked scans)")

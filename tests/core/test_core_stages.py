@@ -486,3 +486,30 @@ def test_residual_solve_of_blended_transforms():
     scale = np.linalg.cond(B[ok])[:, None] * np.abs(want).max(axis=1, keepdims=True)
     assert np.all(np.abs(d[ok] - want) <= 1e-13 * scale)
     assert np.allclose(d[:10], np.einsum("nij,nj->ni", np.linalg.pinv(B[:10]), rhs[:10]))
+
+
+def test_more_poses_than_the_trials_use_keep_the_split_stage(monkeypatch):
+    """The split stage's budget is the relabelling swaps' on the fields the trials use (a spread of
+    ``skinning.SAMPLE_FIELDS``): a scan given more poses than that keeps its splits as it keeps its
+    swaps, and above the budget both are skipped with one note naming the fields counted."""
+    from artdef_addon import skinning, splits, swaps
+    P = skinning.SAMPLE_FIELDS + 16
+    scan = samples.make("branching", n_fields=P)
+    N = scan.n_vertices
+    calls = []
+    real = splits.split_links
+
+    def spy(*a, **k):
+        calls.append(a[1].shape[0])           # the fields the trials got
+        return real(*a, **k)
+    monkeypatch.setattr(splits, "split_links", spy)
+    monkeypatch.setattr(swaps, "SWAP_BUDGET", N * skinning.SAMPLE_FIELDS)   # below N × P
+    r = F.fit(scan, 11)
+    assert calls == [skinning.SAMPLE_FIELDS]
+    assert not any("skipped" in n for n in r.notes)
+    monkeypatch.setattr(swaps, "SWAP_BUDGET", N * skinning.SAMPLE_FIELDS - 1)
+    calls.clear()
+    r = F.fit(scan, 11)
+    assert calls == []
+    assert f"link swaps and splits skipped: {N:,} vertices × {skinning.SAMPLE_FIELDS} fields (a spread of the {P})" \
+        in " ".join(r.notes)
