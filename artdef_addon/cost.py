@@ -94,6 +94,12 @@ SKIN_SECONDS_PER_LINK_SQUARED = 0.0013
 #: skins explain the poses at once, stay overpriced (0.27-0.40 x at 4k-17k triangles)
 SKIN_SAMPLED_VERTICES = 12000
 SKIN_SECONDS_PER_LINK_VERTEX_FIELD_ALL = 1.0e-7
+#: ... and where the scan is above the swaps' budget (no swap or split trials: the relabelling's and
+#: the refined skin's decompositions only) the first term is this share of its price, on the fields
+#: the decompositions use (at most ``skinning.SAMPLE_FIELDS``). Measured (stop 30): the cow at 87
+#: fresh poses, 11,666 vertices × 64 fields above the budget, 2.6 s of articulation stages against
+#: 9.7 s with its trials (budget raised): 0.27; its estimate 18.8 -> 7.6 s against a 5.4 s fit
+NO_TRIALS_SHARE = 0.25
 #: the segmentation's merge to k links (Λ merge, the links' medoids, the seam refinement): seconds
 #: per clustered unit × field clustered
 MERGE_SECONDS_PER_UNIT_FIELD = 5.5e-6
@@ -132,6 +138,12 @@ GROW_FITS = 0.15
 #: with it the estimate is 0.6-1.2 x the measured rise of the peak RSS on the shared sets
 #: (``benchmarks/results/estimate.md``)
 FIT_BASE_BYTES = 8 * 2 ** 20
+#: the units' features held during the articulation stages, in copies (the Segmenter's and the
+#: working copies of the links' medoids and robust motions). Measured (stop 30, the fit's rise of the
+#: peak RSS after a warm-up fit): with one copy dembones\_bone (400 fields) 44 MB against 97 MB,
+#: CesiumMan at 87 fresh poses 48 against 104, the wolf at 87 75 against 155 (0.45-0.49 x); with three
+#: 0.68-0.94 x on the shared sets at their own and at 87 fresh poses, the generated scans 1.2-1.7 x
+ARTICULATION_FEATURE_COPIES = 3
 #: bytes per vertex × link of the refined skin's per-vertex arrays (errors, their order, the
 #: candidate masks, the link statistics), and per vertex of one block of the weight solve
 SKIN_BYTES_PER_VERTEX_LINK = 48.0
@@ -150,13 +162,17 @@ def stream_bytes(triangles: int, fields: int) -> float:
 
 
 def articulation_cost(vertices: int, fields: int, links: int) -> tuple[float, float]:
-    """(seconds, bytes) of a tracked scan's articulation stage (skin decompositions)."""
-    from .skinning import SOLVE_BLOCK
+    """(seconds, bytes) of a tracked scan's articulation stage (skin decompositions). Above the swaps'
+    budget (vertices × the fields the trials use) there are no swap or split trials: the sampled
+    decompositions' term is then :data:`NO_TRIALS_SHARE` of its price, on those fields."""
+    from .skinning import SAMPLE_FIELDS, SOLVE_BLOCK
     from .swaps import SWAP_BUDGET
-    secs = links * (SKIN_SECONDS_PER_LINK_VERTEX_FIELD * min(vertices, SKIN_SAMPLED_VERTICES) * fields
-                    + SKIN_SECONDS_PER_LINK_VERTEX_FIELD_ALL * vertices * fields + SKIN_SECONDS_PER_LINK
+    trial_fields = min(fields, SAMPLE_FIELDS)
+    swaps = vertices * trial_fields <= SWAP_BUDGET
+    sampled = SKIN_SECONDS_PER_LINK_VERTEX_FIELD * min(vertices, SKIN_SAMPLED_VERTICES)
+    sampled *= fields if swaps else NO_TRIALS_SHARE * trial_fields
+    secs = links * (sampled + SKIN_SECONDS_PER_LINK_VERTEX_FIELD_ALL * vertices * fields + SKIN_SECONDS_PER_LINK
                     + SKIN_SECONDS_PER_LINK_SQUARED * links)
-    swaps = vertices * fields <= SWAP_BUDGET
     solve_rows = vertices if swaps else min(vertices, SOLVE_BLOCK)   # swaps keep the whole systems
     mem = SKIN_BYTES_PER_VERTEX_LINK * vertices * (links + 1) + SOLVE_BYTES_PER_VERTEX * solve_rows
     return secs, mem
@@ -190,7 +206,8 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
         L = int(links or (max(1, round(AUTO_LINKS_SHARE * m)) if auto else DEFAULT_LINKS))
         merge = MERGE_SECONDS_PER_UNIT_FIELD * u * seg_fields
         secs, skin_mem = articulation_cost(vertices, fields, L)
-        mem = max(mem, skin_mem + 8.0 * 3 * vertices * fields * 2 + FEATURE_BYTES * u * seg_fields)
+        mem = max(mem, skin_mem + 8.0 * 3 * vertices * fields * 2
+                  + ARTICULATION_FEATURE_COPIES * FEATURE_BYTES * u * seg_fields)
         if auto:
             seconds += CURVE_SHARE * m * (merge + CURVE_SECONDS_PER_COUNT) + AUTO_WHOLE_FITS * (merge + secs) \
                 + AUTO_GROWN_LINKS * GROW_FITS * secs

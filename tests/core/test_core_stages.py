@@ -491,8 +491,9 @@ def test_residual_solve_of_blended_transforms():
 def test_more_poses_than_the_trials_use_keep_the_split_stage(monkeypatch):
     """The split stage's budget is the relabelling swaps' on the fields the trials use (a spread of
     ``skinning.SAMPLE_FIELDS``): a scan given more poses than that keeps its splits as it keeps its
-    swaps, and above the budget both are skipped with one note naming the fields counted."""
-    from artdef_addon import skinning, splits, swaps
+    swaps, and above the budget both are skipped with one note naming the fields counted; the
+    estimate's price of the trials follows the same boundary (``cost.NO_TRIALS_SHARE``)."""
+    from artdef_addon import cost, skinning, splits, swaps
     P = skinning.SAMPLE_FIELDS + 16
     scan = samples.make("branching", n_fields=P)
     N = scan.n_vertices
@@ -507,9 +508,13 @@ def test_more_poses_than_the_trials_use_keep_the_split_stage(monkeypatch):
     r = F.fit(scan, 11)
     assert calls == [skinning.SAMPLE_FIELDS]
     assert not any("skipped" in n for n in r.notes)
+    within, _ = cost.articulation_cost(N, P, 11)
     monkeypatch.setattr(swaps, "SWAP_BUDGET", N * skinning.SAMPLE_FIELDS - 1)
     calls.clear()
     r = F.fit(scan, 11)
     assert calls == []
+    # the estimate stops pricing the trials exactly where the fit stops running them
+    above, _ = cost.articulation_cost(N, P, 11)
+    assert above < within
     assert f"link swaps and splits skipped: {N:,} vertices × {skinning.SAMPLE_FIELDS} fields (a spread of the {P})" \
         in " ".join(r.notes)
