@@ -174,9 +174,9 @@ def _cmd_info(a) -> int:
           f"{sc.n_fields} fields, {sc.n_loads} loads, "
           f"{0 if sc.support_vertices is None else len(sc.support_vertices)} support vertices, "
           f"{len(sc.degenerate_faces)} degenerate triangles, probe load {sc.probe_load:g}")
-    from .cost import estimate
+    from .cost import estimate, resident_bytes
     print(estimate(sc.n_faces - len(sc.degenerate_faces), sc.n_fields, sc.n_vertices,
-                   "paper" if sc.kind == "greens" else "summed").describe())
+                   "paper" if sc.kind == "greens" else "summed").describe(resident_bytes()))
     return 0
 
 
@@ -317,6 +317,7 @@ def _utf8(path: str) -> bool:
 
 def _cmd_fit(a) -> int:
     from . import api, files
+    from . import cost as _cost
     from . import fit as fit_module
     R = {name: opt.range for name, (_, opt) in FitOptions.declaration().items() if not opt.choices}
     t0 = time.perf_counter()
@@ -433,7 +434,9 @@ def _cmd_fit(a) -> int:
         # priced for this link count (or the --links auto search)
         est, _ = api.plan(usable, sc.n_fields, sc.n_vertices, sc.kind, options,
                           links=None if auto else links, auto=auto)
-        print(est.describe() + (f" with the link-count search up to {max_links} links" if auto else "")
+        loads_blender = blender and "bpy" not in sys.modules     # the outputs will load it after the fit
+        print(est.describe(_cost.resident_bytes(), _cost.BLENDER_OUTPUT_BYTES if loads_blender else 0.0)
+              + (f" with the link-count search up to {max_links} links" if auto else "")
               + (" -> reduced method" if est.reduced else ""), flush=True)
     # the link-count search is its own stage: its share done, in tenths (a search can take minutes)
     progress = search_printer() if auto and not a.quiet else None

@@ -189,3 +189,37 @@ def test_estimate_prices_the_patch_streams_memory():
     assert seg.reduced
     priced = cost.stream_bytes(scan.n_faces, scan.n_fields)
     assert 0.5 < priced / rise < 2.0, (priced / 2 ** 20, rise / 2 ** 20)
+
+
+def test_command_line_estimate_is_the_process_peak(tmp_path):
+    """The command line prints the peak of its own process: what it holds before the fit and the
+    fit's estimate, both named; the process's measured peak (its ``VmHWM`` as it exits; ``ru_maxrss``
+    would keep the forking parent's) is within 2 x of it. Without a base (the panel: a fit inside a
+    running Blender) the fit's own is printed."""
+    import os
+    import re
+    import subprocess
+    import sys
+    import pytest
+    if not os.path.exists("/proc/self/status"):
+        pytest.skip("the process's peak is read from /proc/self/status (its VmHWM)")
+    est = cost.estimate(584, 3, 297)
+    line = est.describe(100 * 2 ** 20, 200 * 2 ** 20)
+    assert f"about {cost.format_bytes(300 * 2 ** 20 + est.memory_bytes)} peak (this process's 100 MB, " in line
+    assert "for the fit and about 200 MB for Blender's outputs)" in line
+    assert est.describe().startswith("estimate: full method on 584 triangles, 3 fields: about ")
+    scan, res = tmp_path / "branching.npz", tmp_path / "res.npz"
+    assert subprocess.run([sys.executable, "-m", "artdef_addon", "sample", "branching", "-o", str(scan)]).returncode == 0
+    # the command line in a process that reports its own peak as it exits
+    code = ("import runpy, sys\n"
+            "sys.argv = ['artdef_addon', 'fit', sys.argv[1], '--links', '11', '-o', sys.argv[2]]\n"
+            "try:\n    runpy.run_module('artdef_addon', run_name='__main__')\n"
+            "finally:\n    print('PEAK', [l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')][0],"
+            " file=sys.stderr)\n")
+    p = subprocess.run([sys.executable, "-c", code, str(scan), str(res)], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    peak = float(re.search(r"PEAK (\d+)", p.stderr).group(1)) * 1024.0
+    m = re.search(r"about ([\d.]+) (MB|GB) peak \(this process's", p.stdout)
+    assert m, p.stdout
+    printed = float(m.group(1)) * 2 ** (20 if m.group(2) == "MB" else 30)
+    assert 0.5 < printed / peak < 2.0, (printed / 2 ** 20, peak / 2 ** 20)
