@@ -134,8 +134,8 @@ SKIN_SECONDS_PER_LINK_VERTEX_FIELD_ALL = 1.0e-7
 #: ... and where the scan is above the swaps' budget (no swap or split trials: the relabelling's and
 #: the refined skin's decompositions only) the first term is this share of its price, on the fields
 #: the decompositions use (at most ``skinning.SAMPLE_FIELDS``). Measured (stop 30): the cow at 87
-#: fresh poses, 11,666 vertices × 64 fields above the budget, 2.6 s of articulation stages against
-#: 9.7 s with its trials (budget raised): 0.27; its estimate 18.8 -> 7.6 s against a 5.4 s fit
+#: fresh poses (11,666 vertices × 64 trial fields) spends 2.6 s in its articulation stages without the
+#: trials, 9.7 s with them: 0.27 (without them its estimate was 18.8 s for a 5.4 s fit)
 NO_TRIALS_SHARE = 0.25
 #: the segmentation's merge to k links (Λ merge, the links' medoids, the seam refinement): seconds
 #: per clustered unit × field clustered

@@ -698,9 +698,9 @@ def stage_split(st: FitState) -> None:
     falls (:func:`splits.split_links`); then, as after the relabel, the links' robust motions of
     the new labels and the skin again (from the split's motions). ``labels``, ``R``, ``t``,
     ``weights``, ``Rs``, ``ts``; ``splits`` counts the kept splits. Scans above the swaps' budget
-    (``swaps.SWAP_BUDGET`` vertices × the fields the trials use, at most ``skinning.SAMPLE_FIELDS``), scans with support vertices and Green's scans are not
-    split. Last, on every tracked scan with the refined skin, the faces follow the skin the rig
-    keeps (:func:`_dominant_skin_labels`)."""
+    (``swaps.SWAP_BUDGET`` vertices × the fields the trials use, at most ``skinning.SAMPLE_FIELDS``),
+    scans with support vertices and Green's scans are not split. Last, on every tracked scan with
+    the refined skin, the faces follow the skin the rig keeps (:func:`_dominant_skin_labels`)."""
     _split_links(st)
     _dominant_skin_labels(st)
 
