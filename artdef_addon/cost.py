@@ -179,7 +179,7 @@ FIT_BASE_BYTES = 8 * 2 ** 20
 #: working copies of the links' medoids and robust motions). Measured (stop 30, the fit's rise of the
 #: peak RSS after a warm-up fit): with one copy dembones\_bone (400 fields) 44 MB against 97 MB,
 #: CesiumMan at 87 fresh poses 48 against 104, the wolf at 87 75 against 155 (0.45-0.49 x); with three
-#: 0.68-0.94 x on the shared sets at their own and at 87 fresh poses, the generated scans 1.2-1.7 x
+#: 0.63-0.94 x on the shared sets at their own and at 87 fresh poses, the generated scans 1.1-1.4 x
 ARTICULATION_FEATURE_COPIES = 3
 #: bytes per vertex × link of the refined skin's per-vertex arrays (errors, their order, the
 #: candidate masks, the link statistics), and per vertex of one block of the weight solve
