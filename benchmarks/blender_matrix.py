@@ -216,8 +216,10 @@ def run_one(label, python, zip_path):
     work = tempfile.mkdtemp(prefix=f"artdef-matrix-{label}-")
     t0 = time.perf_counter()
     try:
+        # its temporary files (Blender's own blender_* folder, which the probe's os._exit leaves) go
+        # under ``work``, removed below
         proc = subprocess.run([python, "-c", PROBE, str(zip_path), work], capture_output=True,
-                              text=True, timeout=1800, cwd=work)
+                              text=True, timeout=1800, cwd=work, env=dict(os.environ, TMPDIR=work))
         lines = [l for l in proc.stdout.splitlines() if l.startswith("MATRIX ")]
         if not lines:
             return {"label": label, "error": (proc.stderr or proc.stdout)[-500:], "steps": {}}
