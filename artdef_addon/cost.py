@@ -203,9 +203,9 @@ def articulation_cost(vertices: int, fields: int, links: int) -> tuple[float, fl
     budget (vertices × the fields the trials use) there are no swap or split trials: the sampled
     decompositions' term is then :data:`NO_TRIALS_SHARE` of its price, on those fields."""
     from .skinning import SAMPLE_FIELDS, SOLVE_BLOCK
-    from .swaps import SWAP_BUDGET
+    from .swaps import within_budget
     trial_fields = min(fields, SAMPLE_FIELDS)
-    swaps = vertices * trial_fields <= SWAP_BUDGET
+    swaps = within_budget(vertices, trial_fields)
     sampled = SKIN_SECONDS_PER_LINK_VERTEX_FIELD * min(vertices, SKIN_SAMPLED_VERTICES)
     sampled *= fields if swaps else NO_TRIALS_SHARE * trial_fields
     secs = links * (sampled + SKIN_SECONDS_PER_LINK_VERTEX_FIELD_ALL * vertices * fields + SKIN_SECONDS_PER_LINK

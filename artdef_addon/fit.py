@@ -732,7 +732,7 @@ def _split_links(st: FitState) -> None:
     # a scan given more poses than the sample keeps its split stage as it keeps its swaps
     if not (st.skin == "refined" and scan.kind != "greens" and L > 2 and st.fields.shape[0] > 0
             and scan.support_vertices is None
-            and scan.n_vertices * _n_trial_fields(st) <= _swaps.SWAP_BUDGET):
+            and _swaps.within_budget(scan.n_vertices, _n_trial_fields(st))):
         return
     x0, faces = scan.vertices, scan.faces
     # the trials decide labels only where the scan has many fields: then on a spread of them, and

@@ -385,7 +385,7 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     and the number of swaps kept (None when the scan is above the swaps' budget).
     """
     from .skinning import alternate_scored, full_skin, vertex_sample
-    from .swaps import SWAP_BUDGET, TRIAL_ROUNDS, swap_links
+    from .swaps import TRIAL_ROUNDS, swap_links, within_budget
     k = R.shape[1]
     rows = vertex_sample(faces, labels, x0.shape[0]) if SAMPLE else None
 
@@ -396,7 +396,7 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
         return w, R, t, e
 
     # a rough skin is enough for the argmax: fewer rounds than the final refined skin
-    if SWAP_LINKS and x0.shape[0] * fields.shape[0] <= SWAP_BUDGET:
+    if SWAP_LINKS and within_budget(x0.shape[0], fields.shape[0]):
         w, R, t, labels, swaps, e, rows = swap_links(x0, fields, faces, labels, R, t, units=units, error=True,
                                                      rows=rows)
     else:

@@ -37,6 +37,14 @@ EXACT = 1e-4
 #: falling from 9 to 3-4 of 11 joints within 2 % and 0.34 to 0.55-0.69 x Dem Bones' error; with them
 #: 9 of 11 and 0.36-0.42 x, in 12.5-13.8 s against 5.3 s (Dem Bones 6.4-7.7 s)
 SWAP_BUDGET = 1_000_000
+
+
+def within_budget(n_vertices: int, trial_fields: int) -> bool:
+    """Whether a scan of ``n_vertices`` runs the swap and split trials (:data:`SWAP_BUDGET`), its
+    trials decomposing ``trial_fields`` fields: the one rule of the relabelling
+    (:func:`merge.dominant_labels`), the split stage (``fit._split_links``) and the estimate
+    (``cost.articulation_cost``)."""
+    return n_vertices * trial_fields <= SWAP_BUDGET
 #: rounds of the decomposition per trial (the final refined skin runs to convergence)
 TRIAL_ROUNDS = 10
 
