@@ -377,14 +377,20 @@ class Segmenter:
         lab, med, used = memo[key]
         return lab.copy(), med.copy(), list(used)
 
+    def segment_fields(self, fields=None) -> list:
+        """The fields a segmentation over ``fields`` (default all) clusters: those that move the mesh."""
+        groups = self.groups if fields is None else [list(fields)]
+        all_fields = [p for g in groups for p in g if self.weights[p] > 0]
+        if not all_fields:
+            raise ScanError("too few fields: no field moves the mesh")
+        return all_fields
+
     def _segment(self, k: int, fields=None):
         """:meth:`segment` without the memory."""
         self._check_k(k)
         self._segmentations += 1
         groups = self.groups if fields is None else [list(fields)]
-        all_fields = [p for g in groups for p in g if self.weights[p] > 0]
-        if not all_fields:
-            raise ScanError("too few fields: no field moves the mesh")
+        all_fields = self.segment_fields(fields)
         n = len(self.unit_tri)
         if self.strategy == "summed":
             Z = self.summed_tree(all_fields)
@@ -1004,6 +1010,32 @@ def fit_until(seg: Segmenter, links: int, stage: str, progress=None):
     st = _new_state(seg, int(links), "robust", skin)
     with single_threaded():
         secs = run_stages(st, progress, STAGES[:[name for name, _ in STAGES].index(stage)])
+    st.spent_total = time.perf_counter() - t0
+    st.spent_merge = seg.timings.get("merge", 0.0) - merge0
+    return st, secs
+
+
+def fit_until_from(seg: Segmenter, labels: np.ndarray, stage: str, progress=None):
+    """:func:`fit_until` from given face ``labels (T,)`` (links 0..L−1, each owning a clustered
+    triangle) instead of the Segmenter's cut: the links' robust motions of those labels (their
+    medoid units over the Segmenter's fields, §6), then the stages from the relabelling up to
+    ``stage``. ``fit(seg.scan, L, segmenter=seg, resume=...)`` finishes it. The link-count search
+    fits the counts it climbs through from the links grown on the count below
+    (:func:`linkcount.grow_link`): their relabelling starts with the missing bone's link in place
+    instead of finding it again by swaps from a new cut of the tree."""
+    skin = "seam" if seg.scan.kind == "greens" else "refined"
+    t0, merge0 = time.perf_counter(), seg.timings.get("merge", 0.0)
+    labels = np.asarray(labels)
+    st = _new_state(seg, int(labels.max()) + 1, "robust", skin)
+    st.fields = _select(st.scan.fields(), st.field_idx)
+    st.used_fields = seg.segment_fields(st.seg_fields)
+    st.n_links = st.links
+    names = [name for name, _ in STAGES]
+    with single_threaded():
+        _report(progress, "motions", 0.0)
+        _relabelled(st, labels)
+        secs = {"segment": 0.0, "motions": time.perf_counter() - t0}
+        secs.update(run_stages(st, progress, STAGES[names.index("relabel"):names.index(stage)]))
     st.spent_total = time.perf_counter() - t0
     st.spent_merge = seg.timings.get("merge", 0.0) - merge0
     return st, secs

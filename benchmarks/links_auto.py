@@ -21,7 +21,7 @@ Issue 16's estimate: "est. (s)" is what ``fit --links auto`` prints before the s
 (``api.plan(..., auto=True)``), "peak MB" the rise of the process's peak RSS during the search
 (the peak reset before it through ``/proc/self/clear_refs``), "est. MB" the estimate's memory.
 
-    .venv/bin/python benchmarks/links_auto.py --data ../shared/data [--only Fox,Robot]
+    .venv/bin/python benchmarks/links_auto.py --data ../shared/data [--only Fox,Robot] [--seeds 1-12]
 """
 from __future__ import annotations
 
@@ -43,14 +43,15 @@ SETS = ["gltf_RiggedSimple", "cragl_cylinder_gt", "gltf_RiggedFigure", "gltf_Fox
         "threejs_RobotExpressive", "gltf_CesiumMan", "cragl_cow_gt", "cragl_wolf_gt", "cragl_cheburashka_gt"]
 
 
-def row(data: str, name: str, kind: str, verify: bool) -> None:
-    """One set and pose kind, in a process of its own: the search first (its peak memory is the
-    process's from there), then the fixed fit at the true count; prints the table row."""
+def row(data: str, name: str, kind: str, verify: bool, seed: int = 1) -> None:
+    """One set and pose kind (fresh poses: of ``seed``), in a process of its own: the search first
+    (its peak memory is the process's from there), then the fixed fit at the true count; prints the
+    table row."""
     with np.load(os.path.join(data, f"{name}.npz"), allow_pickle=False) as z:
         d = {k: z[k] for k in z.files}
     L = len(np.unique(d["gt_face_labels"]))
     u = d["displacements"] if kind == "own" else samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"],
-                                                                      d["gt_parents"], 20, seed=1)
+                                                                      d["gt_parents"], 20, seed=seed)
     scan = S.Scan(d["vertices"], d["faces"], displacements=u)
     mx = max(30, int(1.5 * L))
     est, _ = api.plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind,
@@ -76,6 +77,7 @@ def row(data: str, name: str, kind: str, verify: bool) -> None:
     parts = " / ".join(f"{c.timings.get(p, 0.0):.1f}" for p in ("curve", "upward", "drop"))
     work = f"{c.work.get('whole_fits', 0)} / {c.work.get('partial_fits', 0)} / {c.work.get('grown_links', 0)}"
     mb = 2.0 ** 20
+    kind = kind if kind == "own" or seed == 1 else f"fresh {seed}"
     print(f"| {name} | {kind} | {L} | {c.tree_links} | {c.upward_links} | {c.links} | {100 * (c.links - L) / L:+.0f} % "
           f"| {fixed:.1f} | {dt:.1f} | {dt / fixed:.2f} | {parts} | {work} | {est.seconds:.1f} "
           f"| {dt / est.seconds:.2f} | {peak / mb:.0f} | {est.memory_bytes / mb:.0f} "
@@ -89,10 +91,12 @@ def main(argv=None):
     ap.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data"))
     ap.add_argument("--only", default="", help="comma-separated substrings of the set names")
     ap.add_argument("--verify", action="store_true", help="check each stop on grown links with whole fits")
-    ap.add_argument("--row", nargs=2, metavar=("SET", "POSES"), help=argparse.SUPPRESS)
+    ap.add_argument("--seeds", default="", help="fresh poses of these seeds only (e.g. 1-12): the search's spread "
+                    "over pose sets (issue 16: CesiumMan's own poses are one draw)")
+    ap.add_argument("--row", nargs=3, metavar=("SET", "POSES", "SEED"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.row:
-        row(a.data, a.row[0], a.row[1], a.verify)
+        row(a.data, a.row[0], a.row[1], a.verify, int(a.row[2]))
         return
     only = [s for s in a.only.split(",") if s]
     print("| set | poses | true links | tree rule | whole fits up | links auto | off by | fixed fit (s) | links auto (s) "
@@ -104,8 +108,12 @@ def main(argv=None):
             continue
         if not os.path.exists(os.path.join(a.data, f"{name}.npz")):
             continue
-        for kind in ("own",) if name.startswith("cragl") else ("own", "fresh"):
-            subprocess.run([sys.executable, os.path.abspath(__file__), "--data", a.data, "--row", name, kind]
+        runs = [("own", 1)] if name.startswith("cragl") else [("own", 1), ("fresh", 1)]
+        if a.seeds:
+            lo, _, hi = a.seeds.partition("-")
+            runs = [] if name.startswith("cragl") else [("fresh", s) for s in range(int(lo), int(hi or lo) + 1)]
+        for kind, seed in runs:
+            subprocess.run([sys.executable, os.path.abspath(__file__), "--data", a.data, "--row", name, kind, str(seed)]
                            + (["--verify"] if a.verify else []), check=False)
 
 

@@ -4,7 +4,7 @@ import pytest
 from scipy.cluster.hierarchy import linkage
 from scipy.spatial.transform import Rotation
 
-from artdef_addon import clustering, fit as F, joints, metric, model, samples
+from artdef_addon import clustering, fit as F, joints, metric, model, quality, samples
 from artdef_addon.frames import relative_motions
 
 
@@ -448,6 +448,27 @@ def test_resumed_fit_is_the_whole_fit_and_its_timings_count_the_first_stages():
     assert tm["merge"] > 0 and tm["merge"] == pytest.approx(seg.timings["merge"])
     stages = sum(v for k, v in tm.items() if k not in ("features", "cluster", "total"))
     assert tm["total"] >= stages
+
+
+def test_fit_from_given_labels_keeps_their_links_and_finishes_into_a_fit():
+    """:func:`fit.fit_until_from` (links auto's counts climbed to from grown links) starts the fit's
+    relabelling from the given labels instead of the tree's cut: from the branching object's true
+    links, one link's faces moved to the next link's index (the order a grown link has), the
+    finished fit keeps the true partition at the floor's error, with joints and timings like a fit
+    of the Segmenter's own cut; a cut one link short, given as labels, stays one link short."""
+    scan, truth = samples.branching()
+    seg = F.Segmenter(scan)
+    labels = truth["face_labels"].copy()
+    labels = np.where(labels == 3, 10, np.where(labels == 10, 3, labels))     # another link order
+    state, done = F.fit_until_from(seg, labels, "split")
+    assert list(done) == ["segment", "motions", "relabel", "skin"] and state.n_links == 11
+    r = F.fit(scan, 11, segmenter=seg, resume=(state, done))
+    assert r.n_links == 11 and quality.adjusted_rand_index(r.face_labels, truth["face_labels"]) == 1.0
+    assert r.articulation_error_percent < 0.01
+    assert np.mean(r.face_labels[labels == 10] == 10) > 0.9 and np.mean(r.face_labels[labels == 3] == 3) > 0.9
+    assert np.isfinite(r.joints).all(axis=1).sum() == 10 and r.timings["total"] >= r.timings["relabel"]
+    short = F.fit(scan, 10, segmenter=seg, resume=F.fit_until_from(seg, seg.full_labels(seg.segment(10)[0]), "split"))
+    assert short.n_links == 10 and short.articulation_error_percent > 1.0
 
 
 @pytest.mark.parametrize("block_bytes", [1, 2 ** 30])
