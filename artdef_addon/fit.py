@@ -1026,7 +1026,12 @@ def fit_until_from(seg: Segmenter, labels: np.ndarray, stage: str, progress=None
     skin = "seam" if seg.scan.kind == "greens" else "refined"
     t0, merge0 = time.perf_counter(), seg.timings.get("merge", 0.0)
     labels = np.asarray(labels)
-    st = _new_state(seg, int(labels.max()) + 1, "robust", skin)
+    L = int(labels.max()) + 1
+    if labels.shape != (seg.scan.n_faces,) or labels.min() < 0 or \
+            np.any(np.bincount(labels[seg.valid][seg.unit_tri], minlength=L) == 0):
+        raise ValueError("fit_until_from: labels must give every face one of links 0..L-1, each owning a "
+                         "clustered triangle")
+    st = _new_state(seg, L, "robust", skin)
     st.fields = _select(st.scan.fields(), st.field_idx)
     st.used_fields = seg.segment_fields(st.seg_fields)
     st.n_links = st.links

@@ -91,7 +91,8 @@ class LinkChoice:
     grown_errors: dict = dataclasses.field(default_factory=dict)   # {count: grown error %} (grow_link)
     decisions: list = dataclasses.field(default_factory=list)      # [(count, how the rule decided)]
     # what the search did: {"whole_fits": n (finished fits), "partial_fits": n (fits run up to their split
-    # stage, finished or not), "climbed_fits": n (of those, started from grown links), "grown_links": n, "low_over_bar": [(count, grown links' lowest error / bar)]}
+    # stage, finished or not), "climbed_fits": n (of those, started from grown links), "grown_links": n,
+    # "low_over_bar": [(count, grown links' lowest error / bar)]}
     # (the lowest of the links grown: a continue stops growing at the first under its bar)
     work: dict = dataclasses.field(default_factory=dict)
 

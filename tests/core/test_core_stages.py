@@ -469,6 +469,9 @@ def test_fit_from_given_labels_keeps_their_links_and_finishes_into_a_fit():
     assert np.isfinite(r.joints).all(axis=1).sum() == 10 and r.timings["total"] >= r.timings["relabel"]
     short = F.fit(scan, 10, segmenter=seg, resume=F.fit_until_from(seg, seg.full_labels(seg.segment(10)[0]), "split"))
     assert short.n_links == 10 and short.articulation_error_percent > 1.0
+    gap = np.where(labels == 10, 11, labels)              # link 10 owns nothing
+    with pytest.raises(ValueError, match="each owning a clustered triangle"):
+        F.fit_until_from(seg, gap, "split")
 
 
 @pytest.mark.parametrize("block_bytes", [1, 2 ** 30])
