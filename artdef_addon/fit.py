@@ -1002,45 +1002,38 @@ def _new_state(seg: Segmenter, links: int, motion: str, skin: str) -> FitState:
                     field_idx=list(range(seg.scan.n_fields)))
 
 
-def fit_until(seg: Segmenter, links: int, stage: str, progress=None):
+def fit_until(seg: Segmenter, links: int, stage: str, progress=None, labels: np.ndarray | None = None):
     """The stages of :func:`fit` (its defaults) before ``stage``: ``(state, seconds per stage)``,
-    which ``fit(seg.scan, links, segmenter=seg, resume=...)`` finishes into the same fit."""
-    skin = "seam" if seg.scan.kind == "greens" else "refined"
-    t0, merge0 = time.perf_counter(), seg.timings.get("merge", 0.0)
-    st = _new_state(seg, int(links), "robust", skin)
-    with single_threaded():
-        secs = run_stages(st, progress, STAGES[:[name for name, _ in STAGES].index(stage)])
-    st.spent_total = time.perf_counter() - t0
-    st.spent_merge = seg.timings.get("merge", 0.0) - merge0
-    return st, secs
+    which ``fit(seg.scan, links, segmenter=seg, resume=...)`` finishes into the same fit.
 
-
-def fit_until_from(seg: Segmenter, labels: np.ndarray, stage: str, progress=None):
-    """:func:`fit_until` from given face ``labels (T,)`` (links 0..L−1, each owning a clustered
+    ``labels (T,)``: start from those face labels (``links`` links 0..L−1, each owning a clustered
     triangle) instead of the Segmenter's cut: the links' robust motions of those labels (their
-    medoid units over the Segmenter's fields, §6), then the stages from the relabelling up to
-    ``stage``. ``fit(seg.scan, L, segmenter=seg, resume=...)`` finishes it. The link-count search
-    fits the counts it climbs through from the links grown on the count below
+    medoid units over the Segmenter's fields, §6), then the stages from the relabelling. The
+    link-count search fits the counts it climbs through from the links grown on the count below
     (:func:`linkcount.grow_link`): their relabelling starts with the missing bone's link in place
     instead of finding it again by swaps from a new cut of the tree."""
     skin = "seam" if seg.scan.kind == "greens" else "refined"
     t0, merge0 = time.perf_counter(), seg.timings.get("merge", 0.0)
-    labels = np.asarray(labels)
-    L = int(labels.max()) + 1
-    if labels.shape != (seg.scan.n_faces,) or labels.min() < 0 or \
-            np.any(np.bincount(labels[seg.valid][seg.unit_tri], minlength=L) == 0):
-        raise ValueError("fit_until_from: labels must give every face one of links 0..L-1, each owning a "
-                         "clustered triangle")
-    st = _new_state(seg, L, "robust", skin)
-    st.fields = _select(st.scan.fields(), st.field_idx)
-    st.used_fields = seg.segment_fields(st.seg_fields)
-    st.n_links = st.links
+    st = _new_state(seg, int(links), "robust", skin)
     names = [name for name, _ in STAGES]
+    first = 0
+    secs = {}
+    if labels is not None:
+        labels = np.asarray(labels)
+        if labels.shape != (seg.scan.n_faces,) or labels.min() < 0 or labels.max() != st.links - 1 or \
+                np.any(np.bincount(labels[seg.valid][seg.unit_tri], minlength=st.links) == 0):
+            raise ValueError("fit_until: labels must give every face one of links 0..L-1, each owning a "
+                             "clustered triangle")
+        st.fields = _select(st.scan.fields(), st.field_idx)
+        st.used_fields = seg.segment_fields(st.seg_fields)
+        st.n_links = st.links
+        first = names.index("relabel")
     with single_threaded():
-        _report(progress, "motions", 0.0)
-        _relabelled(st, labels)
-        secs = {"segment": 0.0, "motions": time.perf_counter() - t0}
-        secs.update(run_stages(st, progress, STAGES[names.index("relabel"):names.index(stage)]))
+        if labels is not None:
+            _report(progress, "motions", 0.0)
+            _relabelled(st, labels)
+            secs = {"segment": 0.0, "motions": time.perf_counter() - t0}
+        secs.update(run_stages(st, progress, STAGES[first:names.index(stage)]))
     st.spent_total = time.perf_counter() - t0
     st.spent_merge = seg.timings.get("merge", 0.0) - merge0
     return st, secs

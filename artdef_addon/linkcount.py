@@ -37,7 +37,7 @@ finished with ``fit.fit(resume=...)`` only if it may be chosen), and the counts 
 by links grown one at a time on it (:func:`grow_link`, Dem Bones' way of adding a bone). Grown
 links well below the slope rule's bar pass the count without a whole fit, well above it they stop
 the search; in between whole fits decide. A count passed on to this way is fitted from the
-links grown there (:func:`fit.fit_until_from`), so its relabelling starts with the missing bone's
+links grown there (:func:`fit.fit_until`'s ``labels``), so its relabelling starts with the missing bone's
 link in place. The chosen count's fit is the one handed back.
 ``benchmarks/results/links_auto.md`` has the counts against the whole-fit rule's.
 
@@ -633,15 +633,12 @@ def partial_fit(seg, k: int, progress=None, start=None):
     the refined skin (weights with the skin's own motions), which the split stage only lowers
     (the whole fit's error is that of its final skin: ``fit.stage_residuals``).
     ``fit.fit(..., resume=(state, seconds))`` finishes the same fit. ``start``: face labels (T,)
-    of ``k`` links to start from instead of the Segmenter's cut (:func:`fit.fit_until_from`: a
-    count the search climbed to, from the links grown on the count below)."""
-    from .fit import fit_until, fit_until_from
+    of ``k`` links to start from instead of the Segmenter's cut (:func:`fit.fit_until`: a count the
+    search climbed to, from the links grown on the count below)."""
+    from .fit import fit_until
     scan = seg.scan
     x0, fields = scan.vertices, scan.fields()
-    if start is None:
-        st, secs = fit_until(seg, k, "split", progress)
-    else:
-        st, secs = fit_until_from(seg, start, "split", progress)
+    st, secs = fit_until(seg, k, "split", progress, labels=start)
     err = float(skin_errors(st.weights, st.Rs, st.ts, x0, fields).sum())
     spread = frame_spread(x0, fields)
     return st, secs, (100.0 * np.sqrt(err / spread) if spread > 0 else 0.0)

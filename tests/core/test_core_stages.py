@@ -451,7 +451,7 @@ def test_resumed_fit_is_the_whole_fit_and_its_timings_count_the_first_stages():
 
 
 def test_fit_from_given_labels_keeps_their_links_and_finishes_into_a_fit():
-    """:func:`fit.fit_until_from` (links auto's counts climbed to from grown links) starts the fit's
+    """:func:`fit.fit_until` from given labels (links auto's counts climbed to from grown links) starts the fit's
     relabelling from the given labels instead of the tree's cut: from the branching object's true
     links, one link's faces moved to the next link's index (the order a grown link has), the
     finished fit keeps the true partition at the floor's error, with joints and timings like a fit
@@ -460,18 +460,18 @@ def test_fit_from_given_labels_keeps_their_links_and_finishes_into_a_fit():
     seg = F.Segmenter(scan)
     labels = truth["face_labels"].copy()
     labels = np.where(labels == 3, 10, np.where(labels == 10, 3, labels))     # another link order
-    state, done = F.fit_until_from(seg, labels, "split")
+    state, done = F.fit_until(seg, 11, "split", labels=labels)
     assert list(done) == ["segment", "motions", "relabel", "skin"] and state.n_links == 11
     r = F.fit(scan, 11, segmenter=seg, resume=(state, done))
     assert r.n_links == 11 and quality.adjusted_rand_index(r.face_labels, truth["face_labels"]) == 1.0
     assert r.articulation_error_percent < 0.01
     assert np.mean(r.face_labels[labels == 10] == 10) > 0.9 and np.mean(r.face_labels[labels == 3] == 3) > 0.9
     assert np.isfinite(r.joints).all(axis=1).sum() == 10 and r.timings["total"] >= r.timings["relabel"]
-    short = F.fit(scan, 10, segmenter=seg, resume=F.fit_until_from(seg, seg.full_labels(seg.segment(10)[0]), "split"))
+    short = F.fit(scan, 10, segmenter=seg, resume=F.fit_until(seg, 10, "split", labels=seg.full_labels(seg.segment(10)[0])))
     assert short.n_links == 10 and short.articulation_error_percent > 1.0
     gap = np.where(labels == 10, 11, labels)              # link 10 owns nothing
     with pytest.raises(ValueError, match="each owning a clustered triangle"):
-        F.fit_until_from(seg, gap, "split")
+        F.fit_until(seg, 11, "split", labels=gap)
 
 
 @pytest.mark.parametrize("block_bytes", [1, 2 ** 30])
