@@ -274,6 +274,8 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
     filter_glob: StringProperty(
         default="*.glb;*.gltf;*.fbx;*.abc;*.usd;*.usdc;*.usda;*.usdz;*.obj;*.ply",
         options={'HIDDEN'})
+    filepath: compat.blend_relative_filepath("Animated file or first file of a numbered sequence to import "
+                                             "('//' for next to the .blend)", {'SKIP_PRESET', 'HIDDEN'})
     filename_ext = ""
 
     @classmethod

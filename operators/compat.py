@@ -214,6 +214,26 @@ def nla_clip_track(id_data, name, action, start):
 
 
 # --------------------------------------------------------------------------
+# File paths relative to the .blend
+# --------------------------------------------------------------------------
+# Every supported version (4.5.15, 5.0.1, 5.1.2, 5.2.3, 5.3.0) warns
+# (``RuntimeWarning: ...filepath: does not support blend relative "//" prefix``)
+# when a script sets a FILE_PATH property to ``//...`` and the property does not
+# declare ``'PATH_SUPPORTS_BLEND_RELATIVE'``, as bpy_extras' ImportHelper/
+# ExportHelper ``filepath`` does not; all of them accept the option.  ArtDef's
+# file operators resolve ``//`` themselves (``bpy.path.abspath``), so they
+# declare it.
+
+def blend_relative_filepath(description, options=frozenset()):
+    """The ``filepath`` property of a file operator that takes ``//`` paths
+    (next to the .blend): ImportHelper's/ExportHelper's declaration plus
+    ``'PATH_SUPPORTS_BLEND_RELATIVE'`` and ``options``."""
+    return bpy.props.StringProperty(name="File Path", description=description, maxlen=1024,
+                                    subtype='FILE_PATH',
+                                    options={'PATH_SUPPORTS_BLEND_RELATIVE', *options})
+
+
+# --------------------------------------------------------------------------
 # Custom properties
 # --------------------------------------------------------------------------
 # 5.0 keeps the properties registered with bpy.props (our ``Object.artdef``

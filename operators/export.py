@@ -318,6 +318,7 @@ class ARTDEF_OT_export_rig(bpy.types.Operator, ExportHelper):
 
     filename_ext = ".glb"
     filter_glob: StringProperty(default="*.glb;*.gltf;*.fbx", options={'HIDDEN'})
+    filepath: compat.blend_relative_filepath("File to export to ('//' for next to the .blend)")
     export_format: EnumProperty(name="Format", items=FORMATS, default='GLB',
                                 description="File format (the extension follows it)")
     debug_attributes: BoolProperty(

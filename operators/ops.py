@@ -15,7 +15,7 @@ from ..artdef_addon import api as _api
 from ..artdef_addon import fit as _fit
 from ..artdef_addon import scan as _scan
 from ..artdef_addon.options import FitOptions, OptionsError
-from . import fitquality, io, menus, rig
+from . import compat, fitquality, io, menus, rig
 from .props import SETTING_NAMES, FitSettings, enum_id, options_from, store_options
 
 #: Extra cancel checks consulted by every fit's progress callback:
@@ -111,6 +111,8 @@ class ARTDEF_OT_import_scan(bpy.types.Operator, ImportHelper):
 
     filename_ext = ".npz"
     filter_glob: StringProperty(default="*.npz", options={'HIDDEN'})
+    filepath: compat.blend_relative_filepath("Scan file to import ('//' for next to the .blend)",
+                                             {'SKIP_PRESET', 'HIDDEN'})
 
     @classmethod
     def poll(cls, context):

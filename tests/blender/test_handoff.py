@@ -357,6 +357,28 @@ def test_export_rig_operator_writes_only_the_rig(fitted_character, tmp_path):
     assert "COLOR_0" in attrs
 
 
+def test_file_operators_take_paths_next_to_the_blend_without_warnings(fitted_character, tmp_path):
+    """'//' paths (next to the saved .blend) export the rig there and import it back as a scan,
+    and Blender does not warn that the file path properties cannot take them (5.3 does for
+    ImportHelper's/ExportHelper's own ``filepath``)."""
+    import warnings
+    scan_obj = fitted_character[0]
+    assert bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "s.blend")) == {'FINISHED'}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert bpy.ops.artdef.export_rig(filepath="//rig.glb") == {'FINISHED'}
+        assert (tmp_path / "rig.glb").is_file() and not (tmp_path / "//rig.glb").exists()
+        meshes = {o.name for o in bpy.data.objects if o.type == 'MESH'}
+        assert bpy.ops.artdef.fields_from_file(filepath="//rig.glb") == {'FINISHED'}
+    new = bpy.context.view_layer.objects.active
+    assert new.name not in meshes and new.type == 'MESH'
+    assert new.data["artdef_source_path"] == str(tmp_path / "rig.glb")
+    triangles = sum(len(p.vertices) - 2 for p in scan_obj.data.polygons)   # glTF triangulates
+    assert len(new.data.polygons) == triangles
+    relative = [w for w in caught if "relative" in str(w.message)]
+    assert not relative, relative[0].message
+
+
 def test_export_rig_from_the_armature_and_as_fbx(fitted_character, tmp_path):
     scan_obj, _source, _arm = fitted_character
     rig_obj = scan_obj.artdef.rig
