@@ -179,7 +179,7 @@ def digest(*arrays) -> bytes:
     h = hashlib.blake2b(digest_size=16)
     for x in arrays:
         x = np.ascontiguousarray(x)
-        h.update(str((x.dtype, x.shape)).encode())
+        h.update(f"{x.dtype.str}{x.shape}".encode())     # not repr(dtype): a fifth of a small merge's time
         h.update(x.view(np.uint8).reshape(-1) if x.size else b"")
     return h.digest()
 

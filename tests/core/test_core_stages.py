@@ -260,6 +260,37 @@ def test_link_count_sweep_reuses_cluster_sums_and_matches_fresh_fits(name, ks):
         assert np.array_equal(lab, lab1) and np.array_equal(med, med1), k
 
 
+def test_merge_rows_of_all_fields_at_once_equal_each_fields_distances_to_the_bit():
+    """The merge's new Λ row after a merge (every cluster's medoid distance to the merged one,
+    summed over the weighted fields) comes from products stacked over the fields; it equals the sum
+    of each field's ε block (metric.distance_block) in field order, bit for bit, also after a
+    cluster's medoids moved and with a field of weight 0 left out."""
+    from artdef_addon import merge
+    scan = samples.make("branching", noise=0.02, bulges=True)
+    feats = [metric.field_features(scan.vertices, u, scan.faces) for u in scan.displacements]
+    w = np.linspace(0.5, 2.0, len(feats))
+    w[1] = 0.0
+    rng = np.random.default_rng(4)
+    T = feats[0].n
+    medoid = rng.integers(0, T, size=(13, len(feats)))
+    rows = merge._MedoidRows(feats, w, medoid)
+
+    def per_field(a):
+        row = np.zeros(len(medoid))
+        for p, f in enumerate(feats):
+            if w[p]:
+                row += w[p] * metric.distance_block(f, medoid[[a], p], medoid[:, p])[0]
+        return row
+
+    for a in (0, 7, 12):
+        assert np.array_equal(rows.distances(a), per_field(a))
+    medoid[7] = rng.integers(0, T, size=len(feats))
+    rows.move(7, medoid[7])
+    for a in (7, 3):
+        assert np.array_equal(rows.distances(a), per_field(a))
+    assert per_field(3)[3] < 1e-6 * per_field(3).max()      # ε of a medoid with itself: round-off
+
+
 def _rod_decomposition(labels, scan):
     from artdef_addon import skinning
     x0, f, u = scan.vertices, scan.faces, scan.displacements
