@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .metric import FieldFeatures, cross_sums, digest, distance_block, distance_row_sums, row_medians
+from .metric import (FieldFeatures, cross_sums, digest, distance_block, distance_row_sums, distances_to_one,
+                     row_medians)
 
 
 def field_weights(features: list[FieldFeatures]) -> np.ndarray:
@@ -168,11 +169,11 @@ def merge_clusters(features: list[FieldFeatures], weights: np.ndarray, init: np.
 
 class _MedoidRows:
     """The ε features of every cluster's medoid in every weighted field, stacked (fields first), so
-    that one merge's new row of medoid distances is two batched products instead of two per field.
+    that one merge's new row of medoid distances is two batched products instead of two per field
+    (:func:`metric.distances_to_one`).
 
     ``medoid (nc, P)`` unit indices. :meth:`distances` gives Σ_p w_p ε_p(m_a^p, m_j^p) for every
-    cluster j, as :func:`metric.distance_block` of each field would, summed in field order (each
-    field's slice of the stacked products has the shapes and strides of that function's own)."""
+    cluster j, as :func:`metric.distance_block` of each field would, summed in field order."""
 
     def __init__(self, features: list[FieldFeatures], weights: np.ndarray, medoid: np.ndarray):
         self.fields = [p for p in range(len(features)) if weights[p]]
@@ -191,19 +192,10 @@ class _MedoidRows:
 
     def distances(self, a: int) -> np.ndarray:
         """(nc,) Σ_p w_p ε_p(medoid of a, medoid of j) over the clusters j (paper Eq. 5, |·| variant)."""
-        fwd = np.matmul(self.g[:, a:a + 1], np.swapaxes(self.f, 1, 2))[:, 0]     # r(a→j)², (Pa, nc)
-        rev = np.matmul(self.g, np.swapaxes(self.f[:, a:a + 1], 1, 2))[:, :, 0]  # r(j→a)²
-        for r2 in (fwd, rev):
-            np.maximum(r2, 0.0, out=r2)
-            np.sqrt(r2, out=r2)
-        fwd -= self.r
-        np.abs(fwd, out=fwd)
-        rev -= self.r[:, a:a + 1]
-        np.abs(rev, out=rev)
-        fwd += rev
-        row = np.zeros(fwd.shape[1])
+        eps = distances_to_one(self.g, self.f, self.r, a)
+        row = np.zeros(eps.shape[1])
         for i in range(len(self.fields)):
-            row += self.w[i] * fwd[i]
+            row += self.w[i] * eps[i]
         return row
 
 

@@ -160,6 +160,25 @@ def distance_block(f: FieldFeatures, rows, cols) -> np.ndarray:
     return a
 
 
+def distances_to_one(g: np.ndarray, f: np.ndarray, r_self: np.ndarray, a: int) -> np.ndarray:
+    """ε(a, j) for every unit j in each of several fields, from their features stacked fields first:
+    ``g``, ``f`` (F, n, 17), ``r_self`` (F, n) → (F, n). Each field's row equals
+    :func:`distance_block` of that field's features for rows [a] and all columns, to the bit (the
+    products' slices have that function's shapes and strides; the rest is elementwise): the merge
+    of §5.2 takes its new row of medoid distances over all fields at once."""
+    fwd = np.matmul(g[:, a:a + 1], np.swapaxes(f, 1, 2))[:, 0]      # r(a→j)²
+    rev = np.matmul(g, np.swapaxes(f[:, a:a + 1], 1, 2))[:, :, 0]   # r(j→a)²
+    for r2 in (fwd, rev):
+        np.maximum(r2, 0.0, out=r2)
+        np.sqrt(r2, out=r2)
+    fwd -= r_self
+    np.abs(fwd, out=fwd)
+    rev -= r_self[:, a:a + 1]
+    np.abs(rev, out=rev)
+    fwd += rev
+    return fwd
+
+
 def row_medians(a: np.ndarray) -> np.ndarray:
     """``np.median(a, axis=1)`` of a finite (n, r) block, to the bit, about 5x faster: one
     partition at the upper middle, whose lower part's maximum is the lower middle (np.median
