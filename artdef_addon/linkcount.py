@@ -36,7 +36,8 @@ spent on the ground seam). The whole fits are spared where cheaper work gives th
 finished with ``fit.fit(resume=...)`` only if it may be chosen), and the counts ahead are priced
 by links grown one at a time on it (:func:`grow_link`, Dem Bones' way of adding a bone). Grown
 links well below the slope rule's bar pass the count without a whole fit, well above it they stop
-the search; in between whole fits decide. A count passed on to this way is fitted from the
+the search; in between whole fits decide, unless the count's own whole fit already has links that
+are not bones (below): the search stops there. A count passed on to this way is fitted from the
 links grown there (:func:`fit.fit_until`'s ``labels``), so its relabelling starts with the missing bone's
 link in place. The chosen count's fit is the one handed back.
 ``benchmarks/results/links_auto.md`` has the counts against the whole-fit rule's.
@@ -269,6 +270,12 @@ GROWN_MARGIN = 1.25
 #: bone still shows at the floor as a drop of the grown links to below half the bar (Robot's 36th
 #: link: whole fits 0.075 % → 0.019 %, the grown 0.22 x the bar from 35)
 FLOOR_MARGIN = 0.5
+#: a close call is not taken to whole fits above k when k's whole fit already has links that are not
+#: bones (:func:`spurious_links`): the count is past the bones, and the drop of non-bones that follows
+#: the upward pass would take the counts above it down again. dembones_bone (tree pick 14, the drop to
+#: 10): 4 whole fits fewer, its search 57 -> 26 s; RiggedFigure's own poses (20, the drop to 19): 15.0 ->
+#: 4.8 s; the same counts on the other 14 rows of ``benchmarks/results/links_auto.md`` and CesiumMan's seeds 1-12
+STOP_ON_NON_BONES = True
 #: whole-fit error (percent) at which nothing is left to explain: the search stops, as
 #: :func:`_whole_fits_upward` does (a floor of 0.01 % would spare the rigid sets their window's
 #: whole fits, but is not the whole-fit rule)
@@ -492,12 +499,14 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
       error, until it is fitted, the chain's);
     - otherwise k gets its whole fit first (when it has none yet, the chain is grown again on it);
       then the chain stays above ``GROWN_MARGIN`` × the bar: stop at k;
+    - otherwise, when k's whole fit already has links that are not bones (:func:`spurious_links`,
+      ``STOP_ON_NON_BONES``), stop at k: the counts above would be taken down again by the drop;
     - otherwise whole fits decide, k+1 first, then the others in the order of their grown errors,
       until one is below the bar (continue) or none is (stop), as :func:`_whole_fits_upward`.
 
     The count stopped at always has its whole fit (kept in ``fits``; the other fitted counts too).
     Returns (k, {count: whole-fit error %}, {count: grown error %, the last chain's}, [(k, how),
-    ...] with how "grown" / "whole" (stops), "explained", "continue" (whole fits), "grown
+    ...] with how "grown" / "whole" / "non-bones" (stops), "explained", "continue" (whole fits), "grown
     continue"); the figures and the whole fits' agreement: ``benchmarks/results/links_auto.md``.
     ``work["grown_links"]`` counts the links grown."""
     from .fit import fit
@@ -598,6 +607,9 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
             continue
         if low >= (GROWN_MARGIN if best_k > GROWN_FLOOR else FLOOR_MARGIN) * bar:
             decisions.append((k, "grown"))
+            break
+        if STOP_ON_NON_BONES and np.any(spurious_links(x0, faces, fits[k])):
+            decisions.append((k, "non-bones"))   # k is already past the bones: the drop takes it down
             break
         order = [k + 1] + sorted(range(k + 2, j + 1), key=grown.get)
         if not any(whole(i) < bar for i in order):

@@ -294,6 +294,24 @@ def test_links_auto_drops_interpolating_links_on_smooth_blends():
     assert (k, steps) == (11, [(12, 1), (11, 0)])
 
 
+def test_upward_search_stops_where_the_fit_already_has_a_link_that_is_not_a_bone(monkeypatch):
+    """A close call of the upward search (grown links neither clearly below nor above the bar) is
+    decided by whole fits of the counts above k, unless k's own whole fit already has a link that
+    is not a bone (linkcount.STOP_ON_NON_BONES): then k is past the bones, the search stops there
+    and the drop of non-bones takes it down. The wide-blend branching object at 12 links (one more
+    than its 11 bones, a link spent inside a blend) with the margins opened so that every decision
+    is a close call: the 12-link fit is the only whole fit, and the drop lands on the 11 bones."""
+    monkeypatch.setattr(linkcount, "GROWN_MARGIN", 1e9)
+    monkeypatch.setattr(linkcount, "FLOOR_MARGIN", 1e9)
+    scan, truth = samples.branching(blend=2.5)
+    seg = F.Segmenter(scan)
+    fits = {}
+    k, whole, grown, decisions = linkcount._grown_upward(seg, 12, 16, 4, linkcount.SearchProgress(None, 1.0), fits)
+    assert (k, decisions) == (12, [(12, "non-bones")]) and set(fits) == {12}
+    assert np.count_nonzero(linkcount.spurious_links(scan.vertices, scan.faces, fits[12])) == 1
+    assert linkcount._drop_non_bones(seg, 12, fits)[0] == 11
+
+
 def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     """The chooser's fit at the chosen count is the one ``fit`` would make (same segmenter), so the
     command line uses it instead of fitting that count again; other fit options refit."""
