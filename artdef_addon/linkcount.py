@@ -270,9 +270,9 @@ GROWN_MARGIN = 1.25
 #: bone still shows at the floor as a drop of the grown links to below half the bar (Robot's 36th
 #: link: whole fits 0.075 % → 0.019 %, the grown 0.22 x the bar from 35)
 FLOOR_MARGIN = 0.5
-#: a close call is not taken to whole fits above k when k's whole fit already has links that are not
-#: bones (:func:`spurious_links`): the count is past the bones, and the drop of non-bones that follows
-#: the upward pass would take the counts above it down again. dembones_bone (tree pick 14, the drop to
+#: the upward search stops at k once k's whole fit has links that are not bones (:func:`spurious_links`):
+#: the count is past the bones, and the drop of non-bones that follows the upward pass would take the
+#: counts above it down again; neither a second chain of grown links nor the whole fits of a close call. dembones_bone (tree pick 14, the drop to
 #: 10): 4 whole fits fewer, its search 57 -> 26 s; RiggedFigure's own poses (20, the drop to 19): 15.0 ->
 #: 4.8 s; the same counts on the other 14 rows of ``benchmarks/results/links_auto.md`` and CesiumMan's seeds 1-12
 STOP_ON_NON_BONES = True
@@ -498,9 +498,9 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     - the chain falls below ``GROWN_CONTINUE`` × the bar: continue to k+1 without fitting it (its
       error, until it is fitted, the chain's);
     - otherwise k gets its whole fit first (when it has none yet, the chain is grown again on it);
-      then the chain stays above ``GROWN_MARGIN`` × the bar: stop at k;
-    - otherwise, when k's whole fit already has links that are not bones (:func:`spurious_links`,
+      then, when that fit already has links that are not bones (:func:`spurious_links`,
       ``STOP_ON_NON_BONES``), stop at k: the counts above would be taken down again by the drop;
+      when the chain stays above ``GROWN_MARGIN`` × the bar, stop at k too;
     - otherwise whole fits decide, k+1 first, then the others in the order of their grown errors,
       until one is below the bar (continue) or none is (stop), as :func:`_whole_fits_upward`.
 
@@ -579,6 +579,10 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
             top += 1
             search.step(_cost.GROW_FITS)
 
+    def past_bones(j):
+        """Whether j's whole fit has links that are not bones (``STOP_ON_NON_BONES``)."""
+        return STOP_ON_NON_BONES and bool(np.any(spurious_links(x0, faces, fits[j])))
+
     start_fit(start)
     while k < max_links:
         j = min(max_links, k + window)
@@ -602,14 +606,17 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
         if k not in errors:              # a stop or a close call: k's own whole fit first
             based = k in partial         # the chain grew from this fit's skin before its split stage
             whole(k)
+            if past_bones(k):
+                decisions.append((k, "non-bones"))   # k is already past the bones: the drop takes it down
+                break
             if not (based and fits[k].n_links == known_links(chain[k]) and errors[k] >= grown[k] * (1 - 1e-6)):
                 rebase(k)                # the split stage changed the fit: grow the chain again
             continue
         if low >= (GROWN_MARGIN if best_k > GROWN_FLOOR else FLOOR_MARGIN) * bar:
             decisions.append((k, "grown"))
             break
-        if STOP_ON_NON_BONES and np.any(spurious_links(x0, faces, fits[k])):
-            decisions.append((k, "non-bones"))   # k is already past the bones: the drop takes it down
+        if past_bones(k):
+            decisions.append((k, "non-bones"))
             break
         order = [k + 1] + sorted(range(k + 2, j + 1), key=grown.get)
         if not any(whole(i) < bar for i in order):

@@ -12,7 +12,8 @@ seconds split into the tree curve, the upward pass and the drop of links that ar
 "stops" says how each upward decision was made (``linkcount._grown_upward``): "grown" when the
 links grown on a whole fit levelled off (no whole fit of the counts ahead), "whole" when whole
 fits did, "grown continue" when the grown links fell far below the bar (the count passed without a
-whole fit). With ``--verify`` every "grown" stop is checked against the whole fits of the counts
+whole fit), "non-bones" when the count's whole fit already had links that are not bones (the drop
+decides from there). With ``--verify`` every "grown" stop is checked against the whole fits of the counts
 ahead (the whole-fit rule's own decision). "whole / partial fits / grown links": the whole fits the
 search made (the upward pass and the drop), the fits it ran up to their split stage
 (``linkcount.partial_fit``; those it finished are among the whole fits) and the links it grew.
