@@ -272,9 +272,10 @@ GROWN_MARGIN = 1.25
 FLOOR_MARGIN = 0.5
 #: the upward search stops at k once k's whole fit has links that are not bones (:func:`spurious_links`):
 #: the count is past the bones, and the drop of non-bones that follows the upward pass would take the
-#: counts above it down again; neither a second chain of grown links nor the whole fits of a close call. dembones_bone (tree pick 14, the drop to
-#: 10): 4 whole fits fewer, its search 57 -> 26 s; RiggedFigure's own poses (20, the drop to 19): 15.0 ->
-#: 4.8 s; the same counts on the other 14 rows of ``benchmarks/results/links_auto.md`` and CesiumMan's seeds 1-12
+#: counts above it down again, so neither a second chain of grown links on k nor the whole fits of a close
+#: call above it are made. dembones_bone (the tree's pick 14, dropped to 10): its search 57 -> 19 s;
+#: RiggedFigure's own poses (20, dropped to 19): 15.0 -> 4.1-4.8 s; the same counts on all 15 rows of
+#: ``benchmarks/results/links_auto.md`` (stop 33) and on CesiumMan's fresh seeds 1-12
 STOP_ON_NON_BONES = True
 #: whole-fit error (percent) at which nothing is left to explain: the search stops, as
 #: :func:`_whole_fits_upward` does (a floor of 0.01 % would spare the rigid sets their window's

@@ -297,10 +297,11 @@ def test_links_auto_drops_interpolating_links_on_smooth_blends():
 def test_upward_search_stops_where_the_fit_already_has_a_link_that_is_not_a_bone(monkeypatch):
     """A close call of the upward search (grown links neither clearly below nor above the bar) is
     decided by whole fits of the counts above k, unless k's own whole fit already has a link that
-    is not a bone (linkcount.STOP_ON_NON_BONES): then k is past the bones, the search stops there
-    and the drop of non-bones takes it down. The wide-blend branching object at 12 links (one more
-    than its 11 bones, a link spent inside a blend) with the margins opened so that every decision
-    is a close call: the 12-link fit is the only whole fit, and the drop lands on the 11 bones."""
+    is not a bone (linkcount.STOP_ON_NON_BONES): then k is past the bones, the search stops right
+    after that fit and the drop of non-bones takes it down. The wide-blend branching object from 12
+    links (one more than its 11 bones: a link spent inside a blend), the margins opened so that no
+    grown chain settles a stop: the 12-link fit is the search's only whole fit, and the drop lands
+    on the 11 bones."""
     monkeypatch.setattr(linkcount, "GROWN_MARGIN", 1e9)
     monkeypatch.setattr(linkcount, "FLOOR_MARGIN", 1e9)
     scan, truth = samples.branching(blend=2.5)
