@@ -225,6 +225,29 @@ def _obj(Q, q, w, m):
 
 
 @_jit
+def _clip_normalise(x, m):
+    """x (m,) clipped at 0 and divided by its sum, in place."""
+    tot = 0.0
+    for a in range(m):
+        if x[a] < 0:
+            x[a] = 0.0
+        tot += x[a]
+    for a in range(m):
+        x[a] /= tot
+
+
+@_jit
+def _limited(Q, q, sub, w, top, ws, P, m, K, rhs, z, g):
+    """The optimum on the links ``sub`` (at most ``top``) into ws, warm-started from the convex optimum w there,
+    clipped at 0 and summing to 1 (``simplex_least_squares``' limited re-solve)."""
+    st = np.empty(m)
+    for a in range(m):
+        st[a] = w[a] if sub[a] else 0.0
+    _active(Q, q, sub, 3 * top, st, True, ws, P, m, K, rhs, z, g)
+    _clip_normalise(ws, m)
+
+
+@_jit
 def _rows(Q, q, valid, max_support, w0, has_w0, out, wf):
     """skinning.simplex_least_squares row by row into out (N, m) and its convex optimum into wf (N, m)."""
     N, m = q.shape
@@ -269,40 +292,17 @@ def _rows(Q, q, valid, max_support, w0, has_w0, out, wf):
                     same = False
             ws0 = np.empty(m)
             ws1 = np.empty(m)
-            st = np.empty(m)
-            for a in range(m):
-                st[a] = w[a] if sub0[a] else 0.0
-            _active(Q[i], q[i], sub0, 3 * top, st, True, ws0, P, m, K, rhs, z, g)
-            tot = 0.0
-            for a in range(m):
-                if ws0[a] < 0:
-                    ws0[a] = 0.0
-                tot += ws0[a]
-            for a in range(m):
-                ws0[a] /= tot
+            _limited(Q[i], q[i], sub0, w, top, ws0, P, m, K, rhs, z, g)
             best = ws0
             if not same:
-                for a in range(m):
-                    st[a] = w[a] if sub1[a] else 0.0
-                _active(Q[i], q[i], sub1, 3 * top, st, True, ws1, P, m, K, rhs, z, g)
-                tot = 0.0
-                for a in range(m):
-                    if ws1[a] < 0:
-                        ws1[a] = 0.0
-                    tot += ws1[a]
-                for a in range(m):
-                    ws1[a] /= tot
+                _limited(Q[i], q[i], sub1, w, top, ws1, P, m, K, rhs, z, g)
                 if _obj(Q[i], q[i], ws1, m) < _obj(Q[i], q[i], ws0, m):
                     best = ws1
             for a in range(m):
                 w[a] = best[a]
-        tot = 0.0
+        _clip_normalise(w, m)
         for a in range(m):
-            if w[a] < 0:
-                w[a] = 0.0
-            tot += w[a]
-        for a in range(m):
-            out[i, a] = w[a] / tot
+            out[i, a] = w[a]
 
 
 
