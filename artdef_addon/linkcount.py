@@ -580,9 +580,13 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
             top += 1
             search.step(_cost.GROW_FITS)
 
+    verdicts: dict[int, bool] = {}      # count -> its whole fit has links that are not bones
+
     def past_bones(j):
-        """Whether j's whole fit has links that are not bones (``STOP_ON_NON_BONES``)."""
-        return STOP_ON_NON_BONES and bool(np.any(spurious_links(x0, faces, fits[j])))
+        """Whether j's whole fit has links that are not bones (``STOP_ON_NON_BONES``); asked once a count."""
+        if j not in verdicts:
+            verdicts[j] = STOP_ON_NON_BONES and bool(np.any(spurious_links(x0, faces, fits[j])))
+        return verdicts[j]
 
     start_fit(start)
     while k < max_links:
