@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import runpy
-import subprocess
 import sys
 import time
 
@@ -351,18 +350,13 @@ def main(argv=None) -> int:
         from fit_ab import one
         print(json.dumps(one(ROOT, name, int(links), None, args.data)))
         return 0
-    from fit_ab import answers
+    from fit_ab import alternating, answers, median
     rows = []
     for item in args.sets.split(","):
         name, _, links = item.partition(":")
-        runs = {"numpy": [], "compiled": []}
-        for rep in range(args.reps):
-            for how in (("numpy", "compiled") if rep % 2 == 0 else ("compiled", "numpy")):
-                cmd = [sys.executable, __file__, "--one", how, name, links, "--data", args.data]
-                out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1]
-                runs[how].append(json.loads(out))
-        med = {h: sorted(r["cpu"] for r in runs[h])[args.reps // 2] for h in runs}
-        wall = {h: sorted(r["wall"] for r in runs[h])[args.reps // 2] for h in runs}
+        runs = alternating({how: [sys.executable, __file__, "--one", how, name, links, "--data", args.data]
+                            for how in ("numpy", "compiled")}, args.reps)
+        med, wall = median(runs, "cpu"), median(runs, "wall")
         a, b = answers(runs["numpy"][0]), answers(runs["compiled"][0])
         rows.append(f"| {name} | {links} | {med['numpy']:.2f} | {med['compiled']:.2f} | "
                     f"{med['compiled'] / med['numpy']:.2f} | {wall['numpy']:.2f} | {wall['compiled']:.2f} | {a} | "

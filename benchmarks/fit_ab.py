@@ -81,6 +81,23 @@ def one(repo: str, name: str, links: int | None, fresh: int | None, data: str) -
     return out
 
 
+def alternating(commands: dict, reps: int) -> dict:
+    """Run each side's command (a list; it prints one fit's JSON dict last) ``reps`` times in fresh processes,
+    alternating which side goes first; returns {side: [dict, ...]}."""
+    sides = list(commands)
+    runs = {s: [] for s in sides}
+    for rep in range(reps):
+        for side in (sides if rep % 2 == 0 else sides[::-1]):
+            out = subprocess.run(commands[side], check=True, capture_output=True, text=True).stdout
+            runs[side].append(json.loads(out.splitlines()[-1]))
+    return runs
+
+
+def median(runs: dict, key: str) -> dict:
+    """{side: the median of ``key`` over its runs}."""
+    return {s: sorted(r[key] for r in rs)[len(rs) // 2] for s, rs in runs.items()}
+
+
 def answers(r: dict) -> str:
     s = f"KG {r['kg']:.4f} %"
     if "ari" in r:
@@ -106,15 +123,10 @@ def main(argv=None) -> None:
     rows = []
     for item in args.sets.split(","):
         name, _, links = item.partition(":")
-        runs = {"A": [], "B": []}
-        for rep in range(args.reps):
-            for side in ("AB" if rep % 2 == 0 else "BA"):
-                cmd = [sys.executable, __file__, "--one", getattr(args, side.lower()), name, links or "-",
-                       "--data", args.data] + ([] if args.fresh is None else ["--fresh", str(args.fresh)])
-                r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
-                runs[side].append(r)
-        med = {s: sorted(r["cpu"] for r in runs[s])[len(runs[s]) // 2] for s in runs}
-        wall = {s: sorted(r["wall"] for r in runs[s])[len(runs[s]) // 2] for s in runs}
+        fresh = [] if args.fresh is None else ["--fresh", str(args.fresh)]
+        runs = alternating({side: [sys.executable, __file__, "--one", getattr(args, side.lower()), name, links or "-",
+                                   "--data", args.data] + fresh for side in "AB"}, args.reps)
+        med, wall = median(runs, "cpu"), median(runs, "wall")
         same = answers(runs["A"][0]) == answers(runs["B"][0])
         label = name + ("" if args.fresh is None else f" (fresh seed {args.fresh})")
         rows.append((label, runs["A"][0]["links"], med["A"], med["B"], med["B"] / med["A"],
