@@ -94,7 +94,7 @@ def _signal_name(num: int) -> str:
 
 
 def _gb(nbytes: float) -> str:
-    return f"{nbytes / 2**30:.3g} GB"
+    return f"{nbytes / 2**30:.3g} GB" if nbytes >= 2**30 else f"{nbytes / 2**20:.0f} MB"
 
 
 class Call:
@@ -356,6 +356,9 @@ class Worker:
                 return WorkerError("killed", "the worker process was terminated (SIGTERM)")
             return WorkerError("crashed", f"the worker process crashed ({_signal_name(sig)})"
                                + (f": {tail}" if tail else ""))
+        if self.memory_limit and "memory" in tail.lower():
+            return WorkerError("memory", f"the worker process ran out of memory (its limit is "
+                                         f"{_gb(self.memory_limit)}): {tail}")
         if code == 0:
             return WorkerError("crashed", "the worker process ended without a result"
                                + (f": {tail}" if tail else ""))
@@ -482,6 +485,8 @@ def main(argv=None) -> int:
         settings = json.load(f)
     for module in settings.get("preload", []):
         importlib.import_module(module)
+    a = np.ones((256, 256))
+    a @ a                        # OpenBLAS maps its buffers on the first product: before the limit
     _limit_memory(settings.get("memory_limit"))
     for line in sys.stdin:
         name = line.strip()
