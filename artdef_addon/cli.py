@@ -1,7 +1,7 @@
 """Command line: ``python -m artdef_addon fit|sample|info ...``.
 
 Exit codes: 0 success, 2 bad input (one line on stderr, nothing written), 1 failure while working
-or writing (one line, earlier files intact), 130 interrupted. See docs/cli.md.
+or writing (one line, earlier files intact), 130 interrupted. See docs/command_line.md.
 """
 from __future__ import annotations
 

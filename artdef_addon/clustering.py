@@ -1,4 +1,4 @@
-"""Per-field average-linkage clustering and the seam split (paper §5.2; METHOD §4, §5.1)."""
+"""Per-field average-linkage clustering and the seam split (paper §5.2; docs/method_notes.md §4, §5.1)."""
 from __future__ import annotations
 
 import numpy as np

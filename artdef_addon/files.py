@@ -189,7 +189,7 @@ def read_scan(path):
     """Read and validate a scan file (format v1, ``scan`` module docstring) → ``Scan``.
 
     Every problem is one :class:`BadFile` line naming the file. Degenerate triangles (zero area,
-    repeated vertices) are legal and recorded in ``degenerate_faces`` (METHOD §2)."""
+    repeated vertices) are legal and recorded in ``degenerate_faces`` (docs/method_notes.md §2)."""
     name = _name(path)
     d = read_npz(path)
     if "face_labels" in d and "vertices" not in d:

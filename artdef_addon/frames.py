@@ -1,4 +1,4 @@
-"""Per-triangle frames and relative rigid motions (paper §5.1, Eq. 4; METHOD §2).
+"""Per-triangle frames and relative rigid motions (paper §5.1, Eq. 4; docs/method_notes.md §2).
 
 For a triangle (a0, a1, a2) the frame has x̂ along the first edge, ẑ along the normal
 and ŷ = ẑ × x̂, with origin at the centroid. With E0 from the rest vertices and E1 from

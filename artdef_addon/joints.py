@@ -1,4 +1,5 @@
-"""Joint centres between links and the kinematic tree (paper §4, §6; O'Brien et al. 2000; METHOD §7.1–7.2).
+"""Joint centres between links and the kinematic tree (paper §4, §6; O'Brien et al. 2000;
+docs/method_notes_model.md §7.1–7.2).
 
 A joint at rest position c moves identically with both links in every field:
 R_a^p c + t_a^p = R_b^p c + t_b^p. Stacked over the fields this is M c = y (3P×3), solved by a
@@ -52,7 +53,7 @@ def spanning_tree(n: int, edges: np.ndarray, cost: np.ndarray, preferred: np.nda
 
 
 def lsq_motions(x0, fields, faces, labels, L, corner_weights: bool = False):
-    """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, METHOD §6).
+    """Least-squares rigid motion of each link per field (Kabsch/Arun SVD fit, docs/method_notes_model.md §6).
 
     Each link vertex counts once, or with ``corner_weights`` once per face corner it is.
     """

@@ -446,7 +446,7 @@ def grow_link(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.
     error e_v = Σ_p ‖Σ_l w_vl (R_l^p x_v + t_l^p) − x_v^p‖². The clustered triangle (``units``) of
     largest Σ e over its corners, with the triangles of its link that share a vertex with it,
     becomes link L, moving with the least-squares rigid motion of those triangles (Kabsch/Arun,
-    METHOD §6); the decomposition (:func:`skinning.alternate_scored`, ``swaps.TRIAL_ROUNDS``
+    docs/method_notes_model.md §6); the decomposition (:func:`skinning.alternate_scored`, ``swaps.TRIAL_ROUNDS``
     rounds as a swap trial, on the relabelling's vertex sample :func:`skinning.vertex_sample`,
     extended to every vertex by :func:`skinning.full_skin`) then starts from ``w`` (the new link
     at weight 0) and every face goes to the link of its largest summed weight.

@@ -1,4 +1,4 @@
-"""Merge split clusters into links (paper §5.2 second half; METHOD §5.2–5.5).
+"""Merge split clusters into links (paper §5.2 second half; docs/method_notes.md §5.2–5.5).
 
 Every cluster C has, in every field p, a motion centroid m_C^p = argmin_{i∈C} Σ_{j∈C} ε_p(i,j)
 (its medoid triangle, choice A-6). Clusters are merged greedily on

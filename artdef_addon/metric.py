@@ -1,9 +1,9 @@
-"""The commutative distance ε between two triangles in one field (paper Eq. 5; METHOD §3).
+"""The commutative distance ε between two triangles in one field (paper Eq. 5; docs/method_notes.md §3).
 
 The residual of motion ν_b = (R_b, t_b) applied to triangle a is r(b→a) = ‖ν_b(A0_a) − A1_a‖ over
 the stacked 9-vector of a's three vertices. Writing a's vertices as centroid plus offsets
 (a_i = c_a + d_i, Σ d_i = 0) the cross term vanishes, and expanding the square gives an inner
-product of a 17-vector of the motion b with a 17-vector of the triangle a (METHOD §12):
+product of a 17-vector of the motion b with a 17-vector of the triangle a (docs/method_notes_model.md §12):
 
     r²(b→a) = 3‖R_b c0_a + t_b − c1_a‖² + Σ_i ‖d_i‖² + ‖d'_i‖² − 2⟨R_b, Σ_i d'_i d_iᵀ⟩
             = g(b) · f(a),
@@ -50,7 +50,8 @@ class FieldFeatures:
         return FieldFeatures(*(getattr(self, f.name)[idx] for f in dataclasses.fields(self)))
 
     def zero_distance(self) -> np.ndarray:
-        """z(t) = |r(I→t) − r(ν_t→t)|: distance of each motion from the zero velocity (METHOD §5.3)."""
+        """z(t) = |r(I→t) − r(ν_t→t)|: distance of each motion from the zero velocity
+        (docs/method_notes.md §5.3)."""
         return np.abs(self.disp - self.r_self)
 
 

@@ -1,4 +1,4 @@
-"""The articulated deformable model (paper Eqs. 1–3, §7; METHOD §7.3, §8–§10).
+"""The articulated deformable model (paper Eqs. 1–3, §7; docs/method_notes_model.md §7.3, §8–§10).
 
 Pose parameters are per link six numbers: the bone-local Euler angles in Blender's 'XYZ'
 order (R = R_z R_y R_x) and a bone-local location (the translation the fitted joint does not
@@ -14,7 +14,7 @@ targets act before skinning):
 
     x(v) = Σ_l w_l(v) G_l (x0(v) + Σ_c δ_c(v) value_c).
 
-Calibration fields are reproduced exactly: δ_c is solved in that rest space (METHOD §8, with
+Calibration fields are reproduced exactly: δ_c is solved in that rest space (docs/method_notes_model.md §8, with
 the residual stored before skinning — see docs/method.md, "Deviations from the paper").
 """
 from __future__ import annotations
@@ -30,7 +30,7 @@ def euler_to_matrix(angles: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_euler(R: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`euler_to_matrix` (METHOD §7.3; gimbal lock handled by scipy)."""
+    """Inverse of :func:`euler_to_matrix` (docs/method_notes_model.md §7.3; gimbal lock handled by scipy)."""
     R = np.asarray(R, dtype=np.float64)
     import warnings
     with warnings.catch_warnings():
@@ -81,7 +81,7 @@ def params_from_motions(parents, heads, frames, grounded, R, t) -> np.ndarray:
     """Pose parameters (..., L, 6) that reproduce the link motions (R, t) exactly.
 
     Rotation: the relative rotation to the parent, in the bone frame, as Blender 'XYZ' Euler
-    angles (METHOD §7.3). Location: whatever translation the joint does not explain,
+    angles (docs/method_notes_model.md §7.3). Location: whatever translation the joint does not explain,
     loc = Bᵀ(R_pᵀ(t_l − t_p) − h + R_rel h) — zero when the fitted joint is exact, a small
     bone offset otherwise (and the whole translation of a free root), so the rig follows the
     estimated link motions even where the joint fit is imperfect. ``grounded`` is accepted for
@@ -184,7 +184,7 @@ def blended_residual(B, rhs) -> np.ndarray:
 
 
 def harden(s, p_max):
-    """Strain hardening of a normalised load magnitude (paper §7.1; METHOD §10).
+    """Strain hardening of a normalised load magnitude (paper §7.1; docs/method_notes_model.md §10).
 
     s̃ = p_max (1 − ((p_max − 1)/p_max)^s): s̃(0)=0, s̃(1)=1, s̃ → p_max. ``p_max=None`` is off.
     """

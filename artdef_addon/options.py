@@ -158,7 +158,8 @@ def _field(default, **meta):
 
 @dataclasses.dataclass(frozen=True)
 class FitOptions:
-    """Every setting of a fit except the link count (paper §5–§7; METHOD §2–§10)."""
+    """Every setting of a fit except the link count (paper §5–§7; docs/method_notes.md §2–§5,
+    docs/method_notes_model.md §6–§10)."""
     mode: str = _field(
         "global", label="Mode", type=str,
         description="One articulated model for all fields, or one per load point of a Green's scan",

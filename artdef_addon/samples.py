@@ -1,7 +1,7 @@
 """Built-in sample scans with known answers.
 
 * ``rod``        — the paper's Table 1 object: a 3-link rod along x, joints at x = 0, 12, 24
-  (joint 1 to the fixed support), seams linearly blended, three tracked fields (METHOD §11).
+  (joint 1 to the fixed support), seams linearly blended, three tracked fields (docs/method_notes_model.md §11).
 * ``branching``  — a hub with five two-segment arms (11 links, a branching tree), 12 fields,
   optionally with noise and local bulges; ``disconnected=True`` builds the arms as separate
   pieces that share no vertex with the hub.

@@ -98,7 +98,7 @@ class Scan:
         return int(self.displacements.shape[0])
 
     def field(self, c: int) -> np.ndarray:
-        """Displacement field ``c`` as (N, 3). For a Green's scan this is Ξ e_c p̂ (METHOD §1a)."""
+        """Displacement field ``c`` as (N, 3). For a Green's scan this is Ξ e_c p̂ (docs/method_notes.md §1a)."""
         if self.greens is not None:
             return self.greens[:, c].reshape(-1, 3) * self.probe_load
         return self.displacements[c]
@@ -196,7 +196,7 @@ def validate_scan(scan: Scan) -> Scan:
 
     Degenerate triangles (zero area or repeated vertices) are not an error: they are
     recorded in ``degenerate_faces`` and the fit gives them their neighbours' link
-    (METHOD §2, notes).
+    (docs/method_notes.md §2, notes).
 
     The copy holds read-only views of its arrays and remembers them, so validating it
     again (the Blender operators validate on reading the mesh, the fit on entry) returns

@@ -21,7 +21,7 @@ A split trial
    to remove (where a chain's seams are shifted, the bone held by two links is next to the link
    holding two bones); its faces go to their best other candidate link and its index to the cut's
    far half;
-3. starts both halves from the least-squares motions of their faces (Kabsch/Arun, METHOD §6) and
+3. starts both halves from the least-squares motions of their faces (Kabsch/Arun, docs/method_notes_model.md §6) and
    runs ``swaps.TRIAL_ROUNDS`` rounds of the decomposition.
 
 A round's trials run in lockstep on two threads (:func:`run_lockstep`): a trial still far above its

@@ -12,8 +12,9 @@ measures what the rig cannot explain. As Dem Bones re-initialises its weakest bo
    candidate link (an upper bound on the re-solved error);
 2. re-seeds the cheapest link at a clustered triangle whose three vertices the skin fits worst
    (the worst triangle of each of the worst-fitted links; the 2 cheapest links × 3 places are
-   tried in turn), with the least-squares motion (Kabsch/Arun, METHOD §6; ``joints.lsq_motions``) of that triangle's
-   one-ring; the removed link's faces go to their best other candidate link;
+   tried in turn), with the least-squares motion (Kabsch/Arun, docs/method_notes_model.md §6;
+   ``joints.lsq_motions``) of that triangle's one-ring; the removed link's faces go to their best
+   other candidate link;
 3. re-runs the decomposition and keeps the swap only if E falls by at least ``MIN_GAIN``.
 
 The link count never changes and E falls at every kept swap. Green's scans keep the paper's

@@ -1,4 +1,4 @@
-"""The paper's acceptance checks (METHOD §11): Table 1 rod, branching object, Green's scan."""
+"""The paper's acceptance checks (docs/method_notes_model.md §11): Table 1 rod, branching object, Green's scan."""
 import numpy as np
 import pytest
 
@@ -100,6 +100,6 @@ def test_hardening_saturates_residual_only():
     loads = np.zeros((scan.n_loads, 3))
     loads[3, 2] = 2.0 * scan.probe_load
     v = model.shape_values_for_loads(result, loads)
-    assert v[11] == pytest.approx(1.5)  # s~(2) = 1.5 for p_max = 2 (METHOD §10 table)
+    assert v[11] == pytest.approx(1.5)  # s~(2) = 1.5 for p_max = 2 (docs/method_notes_model.md §10 table)
     params = model.pose_params_for_loads(result, loads)
     assert np.allclose(params, 2 * result.kappa[:, :, 11] * scan.probe_load)
