@@ -581,5 +581,5 @@ def write_scan(path, scan, compress: bool = False) -> None:
     """Write ``scan`` in format v1, atomically, with exactly the name ``path``.
 
     Uncompressed by default: measured fields barely compress and decompressing slows loading
-    (``benchmarks/results/scan_compression.md``)."""
+    (``benchmarks/results/core_constants.md``)."""
     write_npz(path, scan_arrays(scan), compress)

@@ -1,4 +1,4 @@
-"""Core benchmark (issue 2, and the sizes of issue 6): prints figures, asserts nothing.
+"""Core benchmark: prints figures, asserts nothing.
 
 (a) ε throughput: ``metric.condensed_distance`` for one field of T triangles (every pair,
     both residual directions, the |·| distance, packed into the condensed vector) against a plain
@@ -14,7 +14,7 @@ Usage (from the repository root):
     .venv/bin/python benchmarks/bench_core.py            # full: 1k/5k/20k × 10/50 (minutes)
     .venv/bin/python benchmarks/bench_core.py --quick    # 1k/5k × 10/50, T up to 5k for (a)
     .venv/bin/python benchmarks/bench_core.py --sizes 20000 --fields 20 --skip-eps
-    .venv/bin/python benchmarks/bench_core.py --scale    # issue 6: 20k/100k/1M × 20/200, full vs reduced
+    .venv/bin/python benchmarks/bench_core.py --scale    # 20k/100k/1M × 20/200, full vs reduced
     .venv/bin/python benchmarks/bench_core.py --sizes 20000 --fields 50 --skip-eps --dembones
 
 ``--method full|reduced|both`` forces the core's full or reduced (patch) method (``auto`` lets the
@@ -23,7 +23,8 @@ the reduced one, and prints the ARI between their labels. ``--dembones`` also ti
 the same scan (11 bones) and prints artdef's time / Dem Bones' time. ``--skin`` passes the fit's
 skin option (seam/refined).
 
-Results are also written as Markdown to ``benchmarks/results/bench_core.md`` (``--out``).
+Results are also written as Markdown to ``benchmarks/results/bench_core.md``, with ``--scale`` to
+``benchmarks/results/bench_scale.md`` (``--out`` writes elsewhere).
 """
 from __future__ import annotations
 
@@ -264,13 +265,14 @@ def main(argv=None):
     ap.add_argument("--method", default="auto", choices=("auto", "full", "reduced", "both"),
                     help="full or reduced (patch) method, when the core has it; both = each, with their ARI")
     ap.add_argument("--scale", action="store_true",
-                    help="issue 6 sizes: 20k/100k/1M triangles × 20/200 fields, --method both, no (a)")
+                    help="large sizes: 20k/100k/1M triangles × 20/200 fields, --method both, no (a)")
     ap.add_argument("--labels-out", help=argparse.SUPPRESS)
     ap.add_argument("--dembones", action="store_true",
                     help="also time py-dem-bones (11 bones, 4 influences, 30 iterations) on each scan and print the ratio")
     ap.add_argument("--skip-eps", action="store_true")
     ap.add_argument("--skip-fit", action="store_true")
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_core.md"))
+    ap.add_argument("--out", default=None,
+                    help="Markdown file (default results/bench_core.md, with --scale results/bench_scale.md)")
     ap.add_argument("--case", nargs=2, type=int, metavar=("TRIANGLES", "FIELDS"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.case:
@@ -279,6 +281,8 @@ def main(argv=None):
     if a.skin and not _fit_option("skin", a.skin):
         print(f"note: this core's fit() has no skin option; ignoring --skin {a.skin}")
         a.skin = None
+    if a.out is None:
+        a.out = os.path.join(HERE, "results", "bench_scale.md" if a.scale else "bench_core.md")
     if a.scale:
         a.sizes = a.sizes or "20000,100000,1000000"
         a.fields = "20,200" if a.fields == "10,50" else a.fields

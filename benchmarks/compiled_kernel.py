@@ -341,6 +341,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sets", default="CesiumMan:19,wolf:21,cheburashka:11,dembones_bone:10")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--data", default=os.path.join(os.path.dirname(ROOT), "shared", "data"))
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "compiled_kernel.md"),
+                    help="Markdown file (- for none)")
     ap.add_argument("--one", nargs=3, metavar=("HOW", "NAME", "LINKS"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:
@@ -362,8 +364,12 @@ def main(argv=None) -> int:
                     f"{med['compiled'] / med['numpy']:.2f} | {wall['numpy']:.2f} | {wall['compiled']:.2f} | {a} | "
                     f"{'same' if a == b else b} |")
         print(rows[-1], flush=True)
-    print("| set | links | numpy CPU s | compiled CPU s | ratio | numpy wall s | compiled wall s | answers (numpy) "
-          "| answers (compiled) |\n|---|---:|---:|---:|---:|---:|---:|---|---|\n" + "\n".join(rows))
+    table = ("| set | links | numpy CPU s | compiled CPU s | ratio | numpy wall s | compiled wall s | answers (numpy) "
+             "| answers (compiled) |\n|---|---:|---:|---:|---:|---:|---:|---|---|\n" + "\n".join(rows))
+    print(table)
+    if args.out != "-":
+        import report
+        report.write(args.out, "A compiled weight solve against numpy (`benchmarks/compiled_kernel.py`)", table)
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Two checkouts' fits side by side: CPU time and the answers (issue 16, kernel costs).
+"""Two checkouts' fits side by side: CPU time and the answers.
 
 For each set and repetition the fit of checkout A and of checkout B run one after the other, each in
 a fresh process (so their module caches and the machine's load are shared alike), alternating which
@@ -19,7 +19,7 @@ Usage (from the repository root)::
     .venv/bin/python benchmarks/fit_ab.py ../main . --sets CesiumMan:19,wolf:21,cheburashka:11,dembones_bone:10
     .venv/bin/python benchmarks/fit_ab.py ../main . --sets RobotExpressive:36 --fresh 6 --reps 2
 
-``--out FILE`` appends the Markdown table to FILE.
+Writes the Markdown table to ``benchmarks/results/fit_ab.md`` (``--out`` elsewhere, ``--out -`` nowhere).
 """
 from __future__ import annotations
 
@@ -30,6 +30,8 @@ import os
 import subprocess
 import sys
 import time
+
+import report
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -113,7 +115,7 @@ def main(argv=None) -> None:
     ap.add_argument("--fresh", type=int, default=None, help="fresh random poses of this seed")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--data", default=DATA)
-    ap.add_argument("--out", default=None, help="append the Markdown table to this file")
+    ap.add_argument("--out", default=report.result_path("fit_ab.md"), help="Markdown file (- for none)")
     ap.add_argument("--one", nargs=3, metavar=("REPO", "NAME", "LINKS"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:
@@ -140,9 +142,10 @@ def main(argv=None) -> None:
     table += [f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.2f} | {r[4]:.2f} | {r[7]:.2f} | {r[8]:.2f} | {r[9]:.2f} | {r[5]} | {r[6]} |"
               for r in rows]
     print("\n".join(table))
-    if args.out:
-        with open(args.out, "a", encoding="utf-8") as fh:
-            fh.write("\n".join(table) + "\n")
+    if args.out != "-":
+        report.write(args.out, "Two checkouts' fits side by side (`benchmarks/fit_ab.py`)",
+                     f"A = `{report.commit(args.a)}`, B = `{report.commit(args.b)}`, median of {args.reps}.\n\n"
+                     + "\n".join(table))
 
 
 if __name__ == "__main__":

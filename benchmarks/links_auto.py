@@ -93,17 +93,20 @@ def main(argv=None):
     ap.add_argument("--only", default="", help="comma-separated substrings of the set names")
     ap.add_argument("--verify", action="store_true", help="check each stop on grown links with whole fits")
     ap.add_argument("--seeds", default="", help="fresh poses of these seeds only (e.g. 1-12): the search's spread "
-                    "over pose sets (issue 16: CesiumMan's own poses are one draw)")
+                    "over pose sets (CesiumMan's own poses are one draw)")
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "links_auto.md"),
+                    help="Markdown file for the table (- for none)")
     ap.add_argument("--row", nargs=3, metavar=("SET", "POSES", "SEED"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.row:
         row(a.data, a.row[0], a.row[1], a.verify, int(a.row[2]))
         return
     only = [s for s in a.only.split(",") if s]
-    print("| set | poses | true links | tree rule | whole fits up | links auto | off by | fixed fit (s) | links auto (s) "
-          "| × fixed | curve / up / drop (s) | whole / partial fits / grown links | est. (s) | × est. | peak MB | est. MB | × est. "
-          "| stops |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---|", flush=True)
+    lines = ["| set | poses | true links | tree rule | whole fits up | links auto | off by | fixed fit (s) | links auto (s) "
+             "| × fixed | curve / up / drop (s) | whole / partial fits / grown links | est. (s) | × est. | peak MB | est. MB "
+             "| × est. | stops |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---|"]
+    print("\n".join(lines), flush=True)
     for name in SETS:
         if only and not any(o in name for o in only):
             continue
@@ -114,8 +117,15 @@ def main(argv=None):
             lo, _, hi = a.seeds.partition("-")
             runs = [] if name.startswith("cragl") else [("fresh", s) for s in range(int(lo), int(hi or lo) + 1)]
         for kind, seed in runs:
-            subprocess.run([sys.executable, os.path.abspath(__file__), "--data", a.data, "--row", name, kind, str(seed)]
-                           + (["--verify"] if a.verify else []), check=False)
+            proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--data", a.data, "--row", name, kind,
+                                   str(seed)] + (["--verify"] if a.verify else []), check=False, stdout=subprocess.PIPE,
+                                  text=True)
+            print(proc.stdout, end="", flush=True)
+            lines += [ln for ln in proc.stdout.splitlines() if ln.startswith("|")]
+    if a.out != "-":
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        import report
+        report.write(a.out, "links auto on the shared rigged sets (`benchmarks/links_auto.py`)", "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -1,13 +1,14 @@
-"""artdef against Dem Bones on fresh poses of the shared rigs, at chosen pose counts (issue 16).
+"""artdef against Dem Bones on fresh poses of the shared rigs, at chosen pose counts.
 
-The held-back performance captures of issue 16 have many more poses (87) than the shared sets (9-27)
+Held-back performance captures have many more poses (87) than the shared sets (9-27)
 and than the trials' field spread (``skinning.SAMPLE_FIELDS``, 64), where the swaps' budget
 (``swaps.SWAP_BUDGET``, vertices × trial fields) decides whether the swaps and the split stage run.
 This poses each rig ``--poses`` times (``samples.random_poses``: every bone up to 45°, roots moving)
 for each ``--seeds`` seed, fits artdef (the true link count, one process, after a warm-up fit) and
 Dem Bones (the same bone count, 4 influences, 30 iterations, as ``compare_dembones.py``) and prints
 time, articulation-only error (Karni–Gotsman %), their ratios and artdef's true joints within 2 % of
-the diagonal, as a Markdown table (``--out`` appends it).
+the diagonal, as a Markdown table, written to ``benchmarks/results/many_poses.md`` (``--out`` elsewhere, ``-``
+nowhere).
 
 Usage (py-dem-bones lives in the 4.5 venv: ``.venv-4.5/bin/pip install -r requirements-bench.txt``)::
 
@@ -31,6 +32,7 @@ sys.path.insert(0, HERE)
 
 from artdef_addon import api, quality, samples  # noqa: E402
 from artdef_addon.scan import Scan  # noqa: E402
+import report  # noqa: E402
 
 
 def fit_artdef(d: dict, U: np.ndarray, links: int) -> dict:
@@ -58,7 +60,7 @@ def main(argv=None) -> None:
     ap.add_argument("--seeds", default="3", help="comma-separated seeds of the random poses")
     ap.add_argument("--swap-budget", type=int, default=None,
                     help="swaps.SWAP_BUDGET for this run (vertices × trial fields; default the core's)")
-    ap.add_argument("--out", default=None, help="append the Markdown table to this file")
+    ap.add_argument("--out", default=report.result_path("many_poses.md"), help="Markdown file (- for none)")
     a = ap.parse_args(argv)
     if a.swap_budget is not None:
         from artdef_addon import swaps
@@ -94,9 +96,8 @@ def main(argv=None) -> None:
             "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|")
     table = head + "\n" + "\n".join(rows)
     print(table)
-    if a.out:
-        with open(a.out, "a", encoding="utf-8") as fh:
-            fh.write(table + "\n")
+    if a.out != "-":
+        report.write(a.out, "artdef against Dem Bones at many poses (`benchmarks/many_poses.py`)", table)
 
 
 if __name__ == "__main__":

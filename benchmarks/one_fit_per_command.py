@@ -5,7 +5,8 @@ subprocesses of the Python given by ``--python`` (one with the bpy module), ``--
 alternating, and measures each run's CPU time (user + system) with
 ``resource.getrusage(RUSAGE_CHILDREN)`` — a loaded machine stretches wall time, not CPU time.
 Then it opens the .blend and checks that its vertex groups hold the .npz result's skin weights.
-Prints a Markdown table (put it in benchmarks/results/one_fit_per_command.md).
+Prints a Markdown table and writes it to ``benchmarks/results/one_fit_per_command.md`` (``--out`` elsewhere,
+``-`` nowhere).
 
     /work/venvs/py311-50/bin/python benchmarks/one_fit_per_command.py \\
         --scan ../shared/data/gltf_CesiumMan.npz --links 19
@@ -20,6 +21,8 @@ import sys
 import tempfile
 
 import numpy as np
+
+import report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -51,6 +54,7 @@ def main(argv=None):
     ap.add_argument("--links", default="19")
     ap.add_argument("--python", default=sys.executable)
     ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--out", default=report.result_path("one_fit_per_command.md"), help="Markdown file (- for none)")
     a = ap.parse_args(argv)
     scan = os.path.abspath(a.scan)
     with tempfile.TemporaryDirectory(prefix="artdef-onefit-") as d:
@@ -68,10 +72,14 @@ def main(argv=None):
         match = np.abs(w[:, :, None] - groups[:, None, :]).max(axis=0).argmin(axis=1)
         diff = float(np.abs(groups[:, match] - w).max()) if len(set(match.tolist())) == w.shape[1] else float("inf")
     p, q = min(plain), min(blend)
-    print(f"| scan | links | `fit -o R` CPU s | `fit -o R --blend B` CPU s | ratio | max abs(.blend − .npz weights) |")
-    print("|---|---|---|---|---|---|")
-    print(f"| {os.path.basename(scan)} | {w.shape[1]} | {p:.1f} (runs: {', '.join(f'{x:.1f}' for x in plain)}) "
-          f"| {q:.1f} (runs: {', '.join(f'{x:.1f}' for x in blend)}) | {q / p:.2f} | {diff:.2g} |")
+    table = "\n".join([
+        "| scan | links | `fit -o R` CPU s | `fit -o R --blend B` CPU s | ratio | max abs(.blend − .npz weights) |",
+        "|---|---|---|---|---|---|",
+        f"| {os.path.basename(scan)} | {w.shape[1]} | {p:.1f} (runs: {', '.join(f'{x:.1f}' for x in plain)}) "
+        f"| {q:.1f} (runs: {', '.join(f'{x:.1f}' for x in blend)}) | {q / p:.2f} | {diff:.2g} |"])
+    print(table)
+    if a.out != "-":
+        report.write(a.out, "One fit per command (`benchmarks/one_fit_per_command.py`)", table)
     return 0 if q <= 1.5 * p and diff <= 1e-6 else 1
 
 
