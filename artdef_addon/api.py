@@ -10,13 +10,13 @@ scan's pairwise distances is its own business: the segmentation of a scan (its f
 clustering trees, the expensive O(T²) part) is kept for the next call on the same scan data and
 method settings, so a second fit or a preview with another link count does not recompute it.
 The cache holds the last :data:`CACHE_SIZE` segmentations; an entry is taken out while a call
-uses it, so two threads never share one, and put back only when the call succeeds.
+uses it and put back only when the call succeeds (a cancelled or failed call may leave it half
+merged). In Blender the cache lives in the add-on's worker process (:mod:`jobs`).
 """
 from __future__ import annotations
 
 import hashlib
 import sys
-import threading
 import time
 import types
 from collections import OrderedDict
@@ -35,7 +35,6 @@ __all__ = ["fit", "load_scan", "segment", "plan", "FitOptions", "OptionsError", 
 #: segmentations kept (each holds the per-field features and trees of one scan)
 CACHE_SIZE = 2
 _SEGMENTERS: OrderedDict = OrderedDict()
-_LOCK = threading.Lock()
 
 
 def fingerprint(scan: Scan) -> str:
@@ -83,8 +82,7 @@ def _checkout(scan: Scan, o: FitOptions, progress):
     est, reduce_arg = plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices,
                            scan.kind, o)
     key = _key(scan, o, est.reduced)
-    with _LOCK:
-        seg = _SEGMENTERS.pop(key, None)
+    seg = _SEGMENTERS.pop(key, None)
     if seg is None:
         seg = _fit.Segmenter(scan, progress, strategy=o.strategy, reduce=reduce_arg, budget=o.budget_bytes)
         key = _key(scan, o, seg.reduced)     # what the core built (the plan predicts it)
@@ -98,17 +96,15 @@ def _checkin(key, seg, keep: bool = True) -> None:
     seg.progress = None                      # don't keep a caller's callback alive
     if not keep:
         return
-    with _LOCK:
-        _SEGMENTERS.pop(key, None)
-        _SEGMENTERS[key] = seg
-        while len(_SEGMENTERS) > CACHE_SIZE:
-            _SEGMENTERS.popitem(last=False)
+    _SEGMENTERS.pop(key, None)
+    _SEGMENTERS[key] = seg
+    while len(_SEGMENTERS) > CACHE_SIZE:
+        _SEGMENTERS.popitem(last=False)
 
 
 def clear_cache() -> None:
     """Forget every kept segmentation (frees their memory)."""
-    with _LOCK:
-        _SEGMENTERS.clear()
+    _SEGMENTERS.clear()
 
 
 def _as_scan(scan) -> Scan:
@@ -221,8 +217,7 @@ def cached(scan: Scan, options: FitOptions | None = None):
     scan = validate_scan(scan)
     o = o.resolved(scan.kind)
     est, _ = plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind, o)
-    with _LOCK:
-        return _SEGMENTERS.get(_key(scan, o, est.reduced))
+    return _SEGMENTERS.get(_key(scan, o, est.reduced))
 
 
 class _FitModule(types.ModuleType):

@@ -9,8 +9,7 @@ and 9.6 s with one, the same errors to the bit (``benchmarks/results/links_auto.
 
 :func:`single_threaded` sets OpenBLAS (the BLAS of numpy's wheels and Blender's numpy) to one
 thread for a ``with`` block and restores the count after. Where numpy uses another BLAS, or the
-library cannot be found, it does nothing. The setting is process-wide: other threads' products
-run on one thread meanwhile.
+library cannot be found, it does nothing. The setting is process-wide.
 """
 from __future__ import annotations
 
@@ -18,12 +17,10 @@ import contextlib
 import ctypes
 import glob
 import os
-import threading
 
 _SETTERS = ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
             "openblas_set_num_threads64_", "openblas_set_num_threads")
 _found = None
-_lock = threading.Lock()
 _depth = 0
 _saved = None
 
@@ -61,23 +58,21 @@ def _openblas():
 
 @contextlib.contextmanager
 def single_threaded():
-    """Run the ``with`` block with one OpenBLAS thread (nested blocks and threads: the count
-    is restored when the last one ends)."""
+    """Run the ``with`` block with one OpenBLAS thread (nested blocks: the count is restored
+    when the outermost one ends)."""
     global _depth, _saved
     fns = _openblas()
     if fns is None:
         yield
         return
     set_, get_ = fns
-    with _lock:
-        if _depth == 0:
-            _saved = int(get_())
-            set_(1)
-        _depth += 1
+    if _depth == 0:
+        _saved = int(get_())
+        set_(1)
+    _depth += 1
     try:
         yield
     finally:
-        with _lock:
-            _depth -= 1
-            if _depth == 0 and _saved is not None:
-                set_(_saved)
+        _depth -= 1
+        if _depth == 0 and _saved is not None:
+            set_(_saved)

@@ -77,6 +77,17 @@ def cached(arrays, params, report):
 
 # ---------------------------------------------------------------------------- the parent's side
 
+def result_from(values: dict, arrays: dict, options: FitOptions):
+    """The :class:`fit.FitResult` of a ``fit`` call's reply (``options``: as the call was asked)."""
+    from . import cost, fit as _fit
+    result = _fit._result_from_arrays(arrays)
+    result.options = options                  # as asked, as :func:`api.fit` keeps it
+    result.link_errors, result.reduced = values["link_errors"], values["reduced"]
+    result.groups = values["groups"]
+    result.estimate = None if values["estimate"] is None else cost.Estimate(**values["estimate"])
+    return result
+
+
 class Session:
     """One worker process for the fits of a front end (Blender): started on the first call,
     kept while calls succeed (with the segmentations its :mod:`api` keeps), ended by
@@ -138,15 +149,9 @@ class Session:
         """:func:`api.fit` in the worker: a :class:`fit.FitResult`. ``progress(stage, fraction)``
         is called here, in the caller's process, for each stage the worker reports; returning
         True kills the worker and raises :class:`fit.FitCancelled`."""
-        from . import cost, fit as _fit
         options = options or FitOptions()
         values, arrays = self._wait(self.submit("fit", scan, links, options), progress)
-        result = _fit._result_from_arrays(arrays)
-        result.options = options                  # as asked, as :func:`api.fit` keeps it
-        result.link_errors, result.reduced = values["link_errors"], values["reduced"]
-        result.groups = values["groups"]
-        result.estimate = None if values["estimate"] is None else cost.Estimate(**values["estimate"])
-        return result
+        return result_from(values, arrays, options)
 
     def segment(self, scan: Scan, links: int, options=None, progress=None):
         """:func:`api.segment` in the worker: ``(labels (T,), reduced, notes)``."""

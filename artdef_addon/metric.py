@@ -205,7 +205,7 @@ def digest(*arrays) -> bytes:
 
 
 def worker_count() -> int:
-    """Threads for the blocked distance work: the CPUs this process may use, 1 to 4."""
+    """The CPUs this process may use, 1 to 4 (the fields whose features are in flight)."""
     import os
     try:
         return max(1, min(4, len(os.sched_getaffinity(0))))
@@ -218,10 +218,9 @@ def condensed_distance(f: FieldFeatures, block_entries: int = BLOCK_ENTRIES,
     """The full ε matrix of one field as a condensed vector (the form ``linkage`` takes).
 
     Computed in row blocks, each written straight into its slice of the condensed vector (the
-    upper triangle in row-major order), so peak memory is the vector plus one block per thread.
+    upper triangle in row-major order), so peak memory is the vector plus one block.
     With ``accumulate=w`` the block is added as ``out += w·ε`` instead (streaming a weighted sum
-    over fields without a second T² buffer). Blocks run on a few threads: the matrix products
-    and the element-wise numpy passes release the GIL.
+    over fields without a second T² buffer).
     """
     n = f.n
     size = n * (n - 1) // 2
@@ -241,15 +240,8 @@ def condensed_distance(f: FieldFeatures, block_entries: int = BLOCK_ENTRIES,
         else:
             out[start(i0):start(i1)] += accumulate * blk[mask]
 
-    starts = range(0, n - 1, step)
-    workers = worker_count()
-    if workers > 1 and len(starts) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-        with ThreadPoolExecutor(workers) as ex:
-            list(ex.map(work, starts))
-    else:
-        for i0 in starts:
-            work(i0)
+    for i0 in range(0, n - 1, step):
+        work(i0)
     return out
 
 

@@ -61,9 +61,9 @@ class WorkerError(Exception):
     ``crashed`` (a fatal signal, or an exit without a result), ``killed`` (SIGKILL or SIGTERM from
     outside), ``timeout``, ``cancelled`` (:meth:`Worker.kill`)."""
 
-    def __init__(self, kind: str, message: str, type_name: str = ""):
+    def __init__(self, kind: str, message: str, type_name: str = "", details: str = ""):
         super().__init__(message)
-        self.kind, self.type_name = kind, type_name
+        self.kind, self.type_name, self.details = kind, type_name, details
 
 
 # ---------------------------------------------------------------------------------------- parent
@@ -201,7 +201,7 @@ class Call:
                 self.worker.kill()              # its state after a failed allocation is not trusted
                 return w
             return WorkerError("error", reply.get("message") or reply.get("type", "error"),
-                               reply.get("type", ""))
+                               reply.get("type", ""), reply.get("traceback", ""))
         arrays = {name: np.load(os.path.join(self.folder, f"out-{i}.npy"), allow_pickle=False)
                   for i, name in enumerate(reply.get("arrays", []))}
         return reply.get("values", {}), arrays
@@ -466,10 +466,9 @@ def _serve_call(folder: str, parent: int) -> None:
         reply = {"ok": False, "memory": True, "type": "MemoryError", "message": str(exc)}
     except Exception as exc:
         import traceback
-        traceback.print_exc()
-        sys.stderr.flush()
         line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        reply = {"ok": False, "type": type(exc).__name__, "message": line}
+        reply = {"ok": False, "type": type(exc).__name__, "message": line,
+                 "traceback": traceback.format_exc()}
     finally:
         report.close()
     _atomic_json(os.path.join(folder, "result.json"), reply)

@@ -21,7 +21,6 @@ import shutil
 import signal
 import sys
 import tempfile
-import threading
 
 NEED_BPY = ("this needs Blender: run inside "
             "`blender -b -P scripts/artdef_fit.py -- ...` or install the bpy module")
@@ -211,14 +210,12 @@ class _Interrupts:
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self):
-        self.flag = threading.Event()
         self._old = None
         self._got = []
 
     def __enter__(self):
         def caught(signum, frame):
             self._got.append(signum)
-            self.flag.set()
         self._old = {}
         try:
             for sig in self.SIGNALS:
@@ -228,10 +225,10 @@ class _Interrupts:
         return self
 
     def hook(self, stage, fraction) -> bool:
-        return self.flag.is_set()
+        return bool(self._got)
 
     def check(self):
-        if self.flag.is_set():
+        if self._got:
             term = self._old and self._old.get(signal.SIGTERM)
             if signal.SIGTERM in self._got and callable(term):
                 term(signal.SIGTERM, None)      # the caller's own handling (the command line: exit 143)
