@@ -5,7 +5,7 @@ for every count: thousands of distance blocks, each a (rows × 17) @ (17 × cols
 (:func:`metric.residuals`). OpenBLAS runs products of that size on all its threads, and on a busy
 machine its threads spend more time waiting for each other than multiplying: on this project's
 2-core reference machine under load, CesiumMan's curve took 21-29 s with numpy's default threads
-and 9.6 s with one, the same errors to the bit (``benchmarks/results/links_auto.md``).
+and 9.6 s with one, the same errors to the bit (``docs/speed.md``, "The link-count search").
 
 :func:`single_threaded` sets OpenBLAS (the BLAS of numpy's wheels and Blender's numpy) to one
 thread for a ``with`` block and restores the count after. Where numpy uses another BLAS, or the

@@ -13,19 +13,16 @@ PAIRS_PER_SECOND = 3.0e7
 #: average-linkage seconds per condensed entry (scipy's nearest-neighbour chain)
 LINKAGE_SECONDS_PER_ENTRY = 9.0e-8
 #: reduced method: seconds per triangle × field of the streamed features and neighbour distances
-#: (its measurement: ``benchmarks/results/core_constants.md``; 8e-6 until stop 26, when the
-#: generated 107k- and 1.03M-triangle scans measured 2.2-3.7e-6 with numpy 2.5 on two threads;
-#: 4e-6 until stop 29, when the features came in blocks and the patches' rounds on the patch
-#: graph: 1.2-1.5e-6 from 17k to 1.03M triangles, CesiumMan's and cheburashka's 1.6-1.7e-6)
+#: (``bench_core.py --scale``: 1.2-1.5e-6 on the generated scans from 17k to 1.03M triangles,
+#: CesiumMan's and cheburashka's 1.6-1.7e-6; ``benchmarks/results/core_constants.md``)
 REDUCED_SECONDS_PER_TRIANGLE_FIELD = 1.5e-6
 #: bytes per triangle per field of the cached per-field features
 FEATURE_BYTES = 8 * 63
 #: reduced method: peak bytes per triangle of each field in flight in the patch stream (the residual
 #: product's rows and columns and the neighbour distances; two fields at a time on two cores), and
 #: per triangle of one block of its features' temporaries (:data:`patches.STREAM_BLOCK`). Measured
-#: (stop 29): the Segmenter's rise of the peak RSS 1,104 MB at 1.03M triangles × 20 fields, 253 MB at
-#: 107k × 4 (1,050 bytes a triangle and no block until then, when every field's features and their
-#: temporaries were whole-mesh arrays: 2,314 and 316 MB)
+#: (``bench_core.py --scale``): the Segmenter's rise of the peak RSS 1,104 MB at 1.03M triangles × 20
+#: fields, 253 MB at 107k × 4, priced at 0.94 and 0.93 of it
 STREAM_BYTES_PER_TRIANGLE_FIELD = 460.0
 STREAM_BYTES_PER_BLOCK_TRIANGLE = 1100.0
 DEFAULT_BUDGET = 2 * 1024 ** 3
@@ -59,9 +56,9 @@ class Estimate:
 
 
 #: what the command line's Blender outputs (--blend/--glb/--fbx/--png) add to its process when it has
-#: not loaded Blender to read its input: the bpy module and the scene built (stop 30, the rise of the
-#: peak RSS over the fit's own: bpy 5.2 254-277 MB on RiggedSimple, CesiumMan, the wolf and the cow
-#: with --glb; importing bpy alone 245 MB, 4.5's 216 MB)
+#: not loaded Blender to read its input: the bpy module and the scene built (the rise of the peak RSS
+#: over the fit's own with --glb: bpy 5.2 254-277 MB on RiggedSimple, CesiumMan, the wolf and the cow;
+#: importing bpy alone 245 MB, 4.5's 216 MB)
 BLENDER_OUTPUT_BYTES = 260 * 2 ** 20
 
 
@@ -112,28 +109,27 @@ def full_memory(triangles: int, fields: int, vertices: int) -> float:
 #: links assumed by the estimate when the count is not given (or chosen automatically)
 DEFAULT_LINKS = 20
 #: tracked scans: the articulation stage (the relabelling's skin decompositions and link swaps, the
-#: refined skin, the split stage; since the third speed push on a vertex sample and at most 64
-#: fields, the skin polished and extended on every vertex and field): seconds per link × vertex ×
+#: refined skin, the split stage; on a vertex sample and at most 64 fields, the skin polished and
+#: extended on every vertex and field): seconds per link × vertex ×
 #: field, per link, and per link² (the swap and split trials grow with the links, and each round of
 #: a trial updates every link's motion in turn). Fitted (minimax of the log ratio) to the fixed fits of
 #: the 16 shared sets and pose kinds (2 to 36 links, 96 to 11,666 vertices, 5 to 400 fields; two runs,
-#: stop 26, ``benchmarks/results/estimate.md``): 0.66-1.88 x of the measured time (cheburashka's split
-#: trials the high end), against 0.62-1.92 x before (the Fox's 22 links and RobotExpressive's 36
-#: underpriced, the 1.03M-triangle scan overpriced 2.2 x)
+#: ``benchmarks/results/estimate.md``): 0.66-1.88 x of the measured time (cheburashka's split trials
+#: the high end); without the link² term the Fox's 22 links and RobotExpressive's 36 are underpriced
 SKIN_SECONDS_PER_LINK_VERTEX_FIELD = 9.0e-7
 SKIN_SECONDS_PER_LINK = 0.018
 SKIN_SECONDS_PER_LINK_SQUARED = 0.0013
 #: ... where the decompositions run on a vertex sample (``skinning.SAMPLE_VERTICES``, at most half the
 #: mesh) the first term stops growing with the mesh: it counts at most this many vertices, and every
 #: vertex adds the full-mesh skins' cost (weights extended from the sample, the polish). Fitted to the
-#: generated branching scans (``benchmarks/generate.py``, 11 links, 20 fields; stop 26): 1.26 x of the
-#: measured time at 1.03M triangles (0.46 x before), 0.52 x at 107k (0.24 x); their small sizes, whose
-#: skins explain the poses at once, stay overpriced (0.27-0.40 x at 4k-17k triangles)
+#: generated branching scans (``benchmarks/generate.py``, 11 links, 20 fields): 1.26 x of the
+#: measured time at 1.03M triangles (0.46 x without this cap), 0.52 x at 107k (0.24 x); their small
+#: sizes, whose skins explain the poses at once, stay overpriced (0.27-0.40 x at 4k-17k triangles)
 SKIN_SAMPLED_VERTICES = 12000
 SKIN_SECONDS_PER_LINK_VERTEX_FIELD_ALL = 1.0e-7
 #: ... and where the scan is above the swaps' budget (no swap or split trials: the relabelling's and
 #: the refined skin's decompositions only) the first term is this share of its price, on the fields
-#: the decompositions use (at most ``skinning.SAMPLE_FIELDS``). Measured (stop 30): the cow at 87
+#: the decompositions use (at most ``skinning.SAMPLE_FIELDS``). Measured (``estimate.md``): the cow at 87
 #: fresh poses (11,666 vertices × 64 trial fields) spends 2.6 s in its articulation stages without the
 #: trials, 9.7 s with them: 0.27 (without them its estimate was 18.8 s for a 5.4 s fit)
 NO_TRIALS_SHARE = 0.25
@@ -148,11 +144,10 @@ SEGMENT_FIELDS = 64
 #: 54, the small rigid sets all), each a merge as below plus ``CURVE_SECONDS_PER_COUNT``; then about
 #: ``AUTO_WHOLE_FITS`` fits at ``AUTO_LINKS_SHARE`` of Max Links (fits run up to their split stage,
 #: the chosen count finished, whole fits where grown links do not settle a decision, the drop of
-#: links that are not bones) and ``AUTO_GROWN_LINKS`` grown links. Fitted again with the link²
-#: term of the fits (stop 26, the shared sets' searches on that stop's machine, most rows within 2 x
-#: with no search priced lower than before): within 2 x on 8 of 15, 0.30-2.90 x (the constants before,
-#: 3 fits and 8 grown links: 8 of 15, 0.33-3.45 x). What the counts cannot tell is how many fits the
-#: decisions take: 1 (CesiumMan's fresh poses, the wolf, the rigid sets: 0.30-0.57 x, 1-8 s) to 10
+#: links that are not bones) and ``AUTO_GROWN_LINKS`` grown links. Fitted with the link² term of the
+#: fits (``benchmarks/links_auto.py``: the shared sets' searches within 2 x on 8 of 15, 0.30-2.90 x;
+#: 3 fits and 8 grown links gave 8 of 15 at 0.33-3.45 x). What the counts cannot tell is how many fits
+#: the decisions take: 1 (CesiumMan's fresh poses, the wolf, the rigid sets: 0.30-0.57 x, 1-8 s) to 10
 #: (RobotExpressive's fresh poses, its tree pick 8 links short: 2.9 x)
 CURVE_SHARE = 0.6
 CURVE_SECONDS_PER_COUNT = 0.0
@@ -161,8 +156,8 @@ AUTO_GROWN_LINKS = 4
 #: the fits a search keeps in memory (the chosen count's, those of the counts around it)
 AUTO_KEPT_FITS = 3.0
 #: the search's peak memory beyond one fit's, per link × vertex × field (fitted to the shared sets'
-#: searches after main's lockstep split trials, da2876b: 0.44-2.26 x of the measured peak RSS rise,
-#: the ends RiggedSimple's 5 MB and RobotExpressive's fresh poses, ten whole fits kept)
+#: searches, ``benchmarks/links_auto.py``: 0.44-2.26 x of the measured peak RSS rise, the ends
+#: RiggedSimple's 5 MB and RobotExpressive's fresh poses, ten whole fits kept)
 AUTO_BYTES_PER_LINK_VERTEX_FIELD = 10.0
 #: the search's fits are priced at this share of Max Links (the shared sets' searches end at
 #: 0.6-0.7 of the ``max(30, 1.5 × true)`` the benchmark gives them; 20 of the default 30)
@@ -176,8 +171,8 @@ GROW_FITS = 0.15
 #: (``benchmarks/results/estimate.md``)
 FIT_BASE_BYTES = 8 * 2 ** 20
 #: the units' features held during the articulation stages, in copies (the Segmenter's and the
-#: working copies of the links' medoids and robust motions). Measured (stop 30, the fit's rise of the
-#: peak RSS after a warm-up fit): with one copy dembones\_bone (400 fields) 44 MB against 97 MB,
+#: working copies of the links' medoids and robust motions). Measured (``estimate.md``, the fit's rise
+#: of the peak RSS after a warm-up fit): with one copy dembones\_bone (400 fields) 44 MB against 97 MB,
 #: CesiumMan at 87 fresh poses 48 against 104, the wolf at 87 75 against 155 (0.45-0.49 x); with three
 #: 0.63-0.94 x on the shared sets at their own and at 87 fresh poses, the generated scans 1.1-1.4 x
 ARTICULATION_FEATURE_COPIES = 3

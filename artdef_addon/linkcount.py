@@ -209,7 +209,7 @@ def descending_curve(seg, max_links: int, tau: float = 0.15, progress=None) -> n
     them). The counts left out are under that pair, where a rig's curve is still in its big drop:
     the rule's first count within tau (k₀) and everything above it are read as from the whole curve
     unless a count under the pair were within tau again (the same tree picks on the 23 curves of
-    the shared sets, 15-20 of CesiumMan's 30 counts computed: ``benchmarks/results/links_auto.md``).
+    the shared sets, 15-20 of CesiumMan's 30 counts computed; ``cost.CURVE_SHARE``).
     The low counts are the dear ones (a few large clusters' medoids and seams)."""
     out = np.full(max_links, np.nan)
     search = progress if isinstance(progress, SearchProgress) else SearchProgress(None, 1.0)
@@ -256,8 +256,8 @@ CONTINUE_DEPTH = 0
 #: the upward search stops on grown links (:func:`_grown_upward`) only when their errors stay above
 #: this many times the bar. A whole fit re-segments, swaps and splits links, so from a chain grown on
 #: the first whole fit it could end far below the grown error of its count (0.23-1.2 x; the Fox's own
-#: poses at 23 links: grown 1.92 x the bar, whole fits 0.43 x), and the margin was 2.5. Grown on the
-#: count's own fit (the chain starts again at every fit), the links land within 0.6-1.3 x of the next
+#: poses at 23 links: grown 1.92 x the bar, whole fits 0.43 x), which would need a margin of 2.5. Grown
+#: on the count's own fit (the chain starts again at every fit), the links land within 0.6-1.3 x of the next
 #: count's whole fit on CesiumMan, and its stops stood at 1.34-3.2 x (whole fits 1.27-2.1 x): at 1.25
 #: every grown stop on the shared sets is the whole fits' too (``links_auto.py --verify``, links_auto.md)
 GROWN_MARGIN = 1.25
@@ -275,7 +275,7 @@ FLOOR_MARGIN = 0.5
 #: counts above it down again, so neither a second chain of grown links on k nor the whole fits of a close
 #: call above it are made. dembones_bone (the tree's pick 14, dropped to 10): its search 57 -> 19 s;
 #: RiggedFigure's own poses (20, dropped to 19): 15.0 -> 4.1-4.8 s; the same counts on all 15 rows of
-#: ``benchmarks/results/links_auto.md`` (stop 33) and on CesiumMan's fresh seeds 1-12
+#: ``benchmarks/results/links_auto.md`` and on CesiumMan's fresh seeds 1-12
 STOP_ON_NON_BONES = True
 #: whole-fit error (percent) at which nothing is left to explain: the search stops, as
 #: :func:`_whole_fits_upward` does (a floor of 0.01 % would spare the rigid sets their window's
@@ -362,10 +362,10 @@ def _choose_links(seg, max_links, tau, search, slope, window, whole_fits) -> Lin
 INTERPOLATING = 0.2
 #: skin weight mass per owned vertex above which a link is a blend handle (see module docstring)
 HANDLE = 3.0
-#: a link no vertex's skin follows by at least this weight is unused (not a bone): on rigs made for the
-#: stop 28 QA pass the slivers the search kept over the true count (4-9 faces) weighed at most 0.09 anywhere,
-#: where the smallest true bones of the shared sets reach 0.47 or more (the Fox's 2-face and RiggedFigure's
-#: 1-face bones); benchmarks/results/links_auto.md, "Stop 28"
+#: a link no vertex's skin follows by at least this weight is unused (not a bone): on twelve rigs built
+#: outside the shared data (``benchmarks/results/fidelity.md``, "Rigs outside the shared data") the slivers
+#: the search kept over the true count (4-9 faces) weighed at most 0.09 anywhere, where the smallest true
+#: bones of the shared sets reach 0.47 or more (the Fox's 2-face and RiggedFigure's 1-face bones)
 UNUSED = 0.25
 
 
@@ -640,7 +640,8 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
 #: 1.6 s a climbed count against 2.6-3.4 s, the search 14.5 -> 11.2 s; the counts chosen the same on
 #: all 15 rows of ``benchmarks/results/links_auto.md`` and on 13 CesiumMan pose sets, the rigs handed
 #: back as good as the fixed-count fits (KG 0.019-0.029 % against 0.019-0.031 %, the same joints).
-#: Not for the whole fits that decide close calls: from a chain they climbed past the truth (stop 31)
+#: Not for the whole fits that decide close calls: from a chain they climb past the truth (the Fox to 23
+#: and 24, RobotExpressive's fresh poses to 37 of 36; ``benchmarks/results/links_auto.md``)
 CLIMB_FROM_GROWN = True
 #: the share of a whole fit's time up to its split stage (CesiumMan: 0.6-0.7), for the progress
 PARTIAL_SHARE = 0.65

@@ -368,8 +368,8 @@ SAMPLE = True
 #: decompositions re-run on the argmax labels at most (see :func:`dominant_labels`)
 RELABEL_ROUNDS = 5
 #: rounds of each of those decompositions: each goes on from the last one's motions and weights, so
-#: it continues one alternation rather than redoing it (10 rounds each before issue 16's fourth push;
-#: 4 lost two finger joints on one of 77 fresh RobotExpressive seeds, 2-3 on another; 5 keeps every
+#: it continues one alternation rather than redoing it (half the weight solves of 10 rounds each; 4
+#: lost two finger joints on one of 77 fresh RobotExpressive seeds, 2-3 on another; 5 keeps every
 #: joint on all 154 fidelity seeds, ``benchmarks/results/fidelity.md``)
 RELABEL_TRIAL_ROUNDS = 5
 

@@ -79,8 +79,8 @@ class Fidelity:
     ``kg_percent``: the Karni–Gotsman distortion 100·‖X − X̂‖_F / ‖X − X̄‖_F, X (F, N, 3) the absolute
     positions x0 + u_p, X̂ the rig's reproduction, X̄ each frame's centroid broadcast over its vertices.
     ``e_rms``: ‖X − X̂‖_F / sqrt(3·N·F) in scene units (the RMS over coordinates). ``vertex_mean_percent``:
-    the same numerator over ‖X − X̄_v‖_F with X̄_v each vertex's mean over the frames (artdef's earlier
-    figure; it leaves out the shape's own extent, so it reads larger).
+    the same numerator over ‖X − X̄_v‖_F with X̄_v each vertex's mean over the frames (the figure of older
+    result files; it leaves out the shape's own extent, so it reads larger).
     """
     kg_percent: float
     e_rms: float

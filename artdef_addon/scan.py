@@ -7,7 +7,7 @@ Both end up as P displacement fields (P, N, 3), which is all the segmentation ne
 
 This module is the data type and its checks only; files are read and written by the file
 boundary, :func:`artdef_addon.files.read_scan` / :func:`artdef_addon.files.write_scan`
-(``artdef_addon.load_scan`` is the former), which imports this module and is never imported
+(``artdef_addon.load_scan`` is ``read_scan``), which imports this module and is never imported
 by it.
 
 File layout (``.npz``, read with ``allow_pickle=False``):

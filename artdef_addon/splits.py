@@ -1,6 +1,6 @@
 """Split links that hold two bones: cut a link in two, drop the link the skin misses least.
 
-An addition to the paper for tracked scans (issue 19, docs/metrics.md "Every true joint"). With a
+An addition to the paper for tracked scans (docs/metrics.md, "Every true joint"). With a
 fixed link count the greedy merge of §5.2 and the swaps of :mod:`swaps` can end with two short,
 fully blended bones (two finger segments) in one link while another bone holds two links. No
 triangle of such a finger moves rigidly with one bone, so its own-motion residual does not single

@@ -33,7 +33,7 @@ MIN_GAIN = 0.005
 EXACT = 1e-4
 #: vertices × fields (those the trials use, at most ``skinning.SAMPLE_FIELDS``) up to which swaps and
 #: the split stage run (each trial is a ``TRIAL_ROUNDS`` decomposition on a vertex sample, each kept
-#: one a weight solve of every vertex; ``benchmarks/results/core_constants.md``). 1M since stop 30: at
+#: one a weight solve of every vertex; ``benchmarks/results/core_constants.md``). 1M because at
 #: 500k the cow (11,666 vertices) at 87 fresh poses lost both stages that it keeps at 40, its rig
 #: falling from 9 to 3-4 of 11 joints within 2 % and 0.34 to 0.55-0.69 x Dem Bones' error; with them
 #: 9 of 11 and 0.36-0.42 x, in 12.5-13.8 s against 5.3 s (Dem Bones 6.4-7.7 s)

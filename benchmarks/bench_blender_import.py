@@ -1,4 +1,4 @@
-"""Blender side of issue 6: importing a large scan and reading it back stays in seconds.
+"""Blender side of large scans: importing a large scan and reading it back stays in seconds.
 
 Prints, for a generated articulated scan (default about 1M triangles × 50 tracked fields):
 

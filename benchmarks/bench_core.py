@@ -90,7 +90,7 @@ def eps_table(rows) -> str:
 
 # ----------------------------------------------------------------------------- (b)
 def dembones_case(scan, bones: int) -> dict:
-    """py-dem-bones' whole decomposition of the same scan (issue 6 asks for the time ratio)."""
+    """py-dem-bones' whole decomposition of the same scan (for the time ratio)."""
     from py_dem_bones.portable import solve_skinning
     x0 = scan.vertices
     X = x0[None] + scan.displacements
@@ -115,7 +115,7 @@ def _fit_option(name: str, value):
 
 
 def _segmenter_kw(method: str) -> dict:
-    """Force the full or the reduced method when the core's Segmenter has ``reduce=`` (issue 6)."""
+    """Force the full or the reduced method when the core's Segmenter has ``reduce=``."""
     if method == "auto":
         return {}
     if "reduce" not in inspect.signature(F.Segmenter.__init__).parameters:

@@ -1,4 +1,4 @@
-"""artdef against Dem Bones (``py-dem-bones``, SSDR) on the same tracked scans (issue 5).
+"""artdef against Dem Bones (``py-dem-bones``, SSDR) on the same tracked scans.
 
 Prints, per scan, side by side: time, articulation-only reconstruction error (Karni–Gotsman
 percentage, one formula for both methods), links/bones found, and where the truth is known the
@@ -14,7 +14,7 @@ of the 5/10/20 that Dem Bones' own example runs on its sample animation) for ``d
 Error: X (P, N, 3) the deformed positions, X̄ each frame's centroid broadcast over its vertices, X̂ the
 articulation only (no residual shapes), error = 100·‖X − X̂‖_F / ‖X − X̄‖_F: the Karni–Gotsman
 distortion as the skinning-decomposition papers quote it (``quality.kg_distortion``; docs/metrics.md).
-Tables measured before issue 19 used each vertex's mean over the fields for X̄ (larger figures). For artdef
+Older tables that used each vertex's mean over the fields for X̄ (larger figures) say so. For artdef
 X̂ = Σ_l w_l G_l x0 with G the forward kinematics of the fitted pose parameters; for Dem Bones
 X̂ = Σ_b w_b M_b x0 with its per-frame bone matrices.
 

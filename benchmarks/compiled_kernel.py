@@ -1,4 +1,4 @@
-r"""A compiled weight solve: what it would buy against Dem Bones (issue 16, stop 34). An experiment, not the product.
+r"""A compiled weight solve: what it would buy against Dem Bones. An experiment, not the product.
 
 The extension's packages are bpy, numpy and scipy, so every skin decomposition round is numpy: about 6 µs a sample
 row in the weight solve's batched active set (`skinning.simplex_least_squares`, a third to two fifths of a fit).

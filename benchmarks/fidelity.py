@@ -1,4 +1,4 @@
-"""Fidelity figures of issue 19 (docs/metrics.md): fresh-seed sweeps of the shared rigs and the model verdict.
+"""Fidelity figures (docs/metrics.md): fresh-seed sweeps of the shared rigs and the model verdict.
 
 Per rig and seed (``samples.random_poses``, 20 fields, the true link count): ARI against the true face
 labels, true joints within 2 % of the diagonal (``quality.true_joint_errors``) and the missing ones, the
@@ -60,7 +60,7 @@ def main(argv=None):
     ap.add_argument("--data", default=os.path.join(ROOT, "tests", "data"))
     ap.add_argument("--out", default=os.path.join(HERE, "results", "fidelity.md"))
     a = ap.parse_args(argv)
-    md = ["# Fidelity (issue 19)", "", "Fresh random poses, true link count. Distortion: Karni–Gotsman %, reported "
+    md = ["# Fidelity on fresh poses (`benchmarks/fidelity.py`)", "", "Fresh random poses, true link count. Distortion: Karni–Gotsman %, reported "
           "by the fit and recomputed from its own weights and pose motions. ρ·L: the verdict's figure (> 1: flagged).",
           "", "| rig | seed | ARI | joints ≤ 2 % | max joint % diag | missing | distortion % | recomputed % | "
           "E_RMS | one rigid motion % | ρ·L | articulated | s |", "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---|---:|"]

@@ -1,4 +1,4 @@
-"""``--links auto`` on the shared rigged sets (issue 5): the link count the core chooses, against the truth.
+"""``--links auto`` on the shared rigged sets: the link count the core chooses, against the truth.
 
 For each set (own poses, and 20 fresh random LBS poses of the true rig, seed 1, for the glTF and
 three.js models) this builds one Segmenter and runs ``linkcount.choose_links`` with up to
@@ -7,7 +7,7 @@ re-cut tree's error curve), the pick after the whole fits upward, the final pick
 interpolating links are dropped) and its distance from the true count, the seconds and the chooser's reason. Heavy: minutes per character; not a test.
 
 Side by side in one process (one process a set and pose kind), each with a new Segmenter: the
-search, then the fixed-count fit at the true count (``fit.fit``); "× fixed" is their time ratio (issue 16: at most 3). The search's
+search, then the fixed-count fit at the true count (``fit.fit``); "× fixed" is their time ratio (the bar: at most 3). The search's
 seconds split into the tree curve, the upward pass and the drop of links that are not bones;
 "stops" says how each upward decision was made (``linkcount._grown_upward``): "grown" when the
 links grown on a whole fit levelled off (no whole fit of the counts ahead), "whole" when whole
@@ -18,7 +18,7 @@ ahead (the whole-fit rule's own decision). "whole / partial fits / grown links":
 search made (the upward pass and the drop), the fits it ran up to their split stage
 (``linkcount.partial_fit``; those it finished are among the whole fits) and the links it grew.
 
-Issue 16's estimate: "est. (s)" is what ``fit --links auto`` prints before the search
+The estimate: "est. (s)" is what ``fit --links auto`` prints before the search
 (``api.plan(..., auto=True)``), "peak MB" the rise of the process's peak RSS during the search
 (the peak reset before it through ``/proc/self/clear_refs``), "est. MB" the estimate's memory.
 

@@ -1,4 +1,4 @@
-"""One fit per command (issue 18): the CPU time of ``fit -o R --blend B`` against ``fit -o R``.
+"""One fit per command: the CPU time of ``fit -o R --blend B`` against ``fit -o R``.
 
 Runs ``python -m artdef_addon fit SCAN --links L -o R`` and the same with ``--blend B`` as
 subprocesses of the Python given by ``--python`` (one with the bpy module), ``--repeat`` times each,

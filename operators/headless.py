@@ -205,8 +205,8 @@ class _Interrupts:
     stages, raises KeyboardInterrupt in plain Python, where the caller removes its temporaries.
     """
 
-    #: SIGTERM (``kill``, ``timeout``) too: raised inside an operator it was swallowed by Blender's
-    #: report and the command went on to write its outputs
+    #: SIGTERM (``kill``, ``timeout``) too: raised inside an operator it would be swallowed by
+    #: Blender's report and the command would go on to write its outputs
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self):

@@ -67,7 +67,7 @@ def _newest_source_mtime():
                 continue
             try:
                 newest = max(newest, os.stat(os.path.join(dirpath, name)).st_mtime)
-            except FileNotFoundError:  # another engineer's editor swap file
+            except FileNotFoundError:  # a file removed while walking (an editor's swap file)
                 pass
     return newest
 
@@ -96,8 +96,8 @@ def blender_user_dir():
 @pytest.fixture(scope="session")
 def extension_zip(tmp_path_factory):
     """The linux-x64 extension zip: dist/'s if newer than every packaged file,
-    otherwise freshly built into a private directory (dist/ is shared with
-    other engineers' concurrent runs, so it is not rewritten here)."""
+    otherwise freshly built into a private directory (dist/ may be shared with
+    other concurrent runs, so it is not rewritten here)."""
     zip_path = REPO_ROOT / "dist" / _zip_name()
     if zip_path.is_file() and zip_path.stat().st_mtime >= _newest_source_mtime():
         return zip_path

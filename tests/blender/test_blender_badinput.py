@@ -1,4 +1,4 @@
-"""Issue 15 in Blender: the import operator reads through the same file boundary as the command line
+"""Bad input in Blender: the import operator reads through the same file boundary as the command line
 (same rules, same one-line message), accepts the legal meshes the command line accepts, and Ctrl-C
 during the command line's Blender stage exits 130 with no partial output and no crash."""
 import hashlib
@@ -55,9 +55,9 @@ def test_import_reports_the_boundarys_one_line(clean_scene, rod, tmp_path):
 
 def test_a_repeated_load_vertex_is_refused_at_import(clean_scene, tmp_path):
     """A Green's scan listing one vertex as two load points: Blender marks one load point per vertex,
-    so the import refuses it with one line naming the vertex and creates nothing (it used to import,
-    the later load point overwriting the mark, and every fit then failed with 'the load vertex
-    numbering is damaged')."""
+    so the import refuses it with one line naming the vertex and creates nothing (imported, the later
+    load point would overwrite the mark, and every fit would then fail with 'the load vertex numbering
+    is damaged')."""
     sc = samples.make("greens_rod")
     lv = np.asarray(sc.load_vertices)
     dup = S.Scan(sc.vertices, sc.faces, greens=np.concatenate([sc.greens, sc.greens[:, :3]], axis=1),
@@ -142,8 +142,8 @@ def _cli(*argv):
 
 
 def test_an_importers_traceback_is_named_by_its_exception(tmp_path):
-    """A glTF importer's Python failure was reported as its first line, 'Cannot import tiny.glb:
-    Python: Traceback (most recent call last):'; the line is now the exception it raised."""
+    """A glTF importer's Python failure is reported as the exception it raised, not as the first line
+    of its output ('Cannot import tiny.glb: Python: Traceback (most recent call last):')."""
     (tmp_path / "tiny.glb").write_bytes(b"glTF")
     p = _cli("fit", tmp_path / "tiny.glb", "--links", "2", "-q")
     lines = p.stderr.strip().splitlines()
@@ -153,8 +153,8 @@ def test_an_importers_traceback_is_named_by_its_exception(tmp_path):
 
 @pytest.mark.skipif(sys.platform != "linux", reason="file names that are not UTF-8 (POSIX bytes)")
 def test_a_sequence_of_files_named_in_other_bytes_is_read(rod, tmp_path):
-    """OBJ files named in bytes that are not UTF-8: 'internal error: TypeError: BlendDataMeshes.new():
-    ... surrogates not allowed' after reading them; now the mesh takes the name with U+FFFD."""
+    """OBJ files named in bytes that are not UTF-8 are read, the mesh taking the name with U+FFFD (a
+    name with surrogates would fail in 'BlendDataMeshes.new(): ... surrogates not allowed')."""
     folder = tmp_path / "seq"
     folder.mkdir()
     faces = "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in rod.faces)

@@ -340,7 +340,7 @@ np.savez(sys.argv[2], weights=w, names=np.array(names))
 def test_a_command_leaves_nothing_in_the_temporary_folder(rod_scan, tmp_path):
     """The command exits without Blender's teardown (cli.exit_process), which would remove
     Blender's session folder (<temp>/blender_XXXXXX/): it removes it itself, as it removes the
-    add-on's temporary repository. Each fit writing a .glb used to leave one behind."""
+    add-on's temporary repository; otherwise each fit writing a .glb would leave one behind."""
     temp = tmp_path / "temp"
     temp.mkdir()
     # what a run killed with SIGKILL left (the add-on's repository, with its link to the source):
@@ -468,7 +468,7 @@ def test_rotation_only_on_a_greens_scan_is_refused_before_the_fit(greens_glb, tm
 
 def test_a_repeated_load_vertex_is_refused_before_the_fit_with_blender_outputs(greens_glb, tmp_path):
     """Blender holds one load point per vertex: --glb on a scan listing a vertex twice is refused with
-    one line before the fit (it used to fit, then fail in the Blender stage as an internal error);
+    one line before the fit (rather than fitting, then failing in the Blender stage as an internal error);
     without Blender outputs the core still fits it."""
     d = dict(np.load(greens_glb["scan"]))
     d["load_vertices"] = np.r_[d["load_vertices"], d["load_vertices"][-1]]

@@ -1,4 +1,4 @@
-"""Property-based fuzzing of the file boundary and the command line (issue 15, point 6).
+"""Property-based fuzzing of the file boundary and the command line .
 
 Scans of random shapes, dtypes, NaN/inf and index errors, and damaged scan files (truncated,
 bytes flipped, members renamed or dropped, garbage appended): the only outcomes allowed are a

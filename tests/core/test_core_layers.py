@@ -1,4 +1,4 @@
-"""The core's layering and public API (issue 18).
+"""The core's layering and public API.
 
 * ``artdef_addon`` never imports Blender (bpy, bmesh, mathutils, addon_utils), not even inside a
   function, and its modules import each other without a cycle (lazy imports included): both read

@@ -1,4 +1,4 @@
-"""Scale (issue 6): cost estimate, the reduced method on patches, streaming over fields."""
+"""Scale: cost estimate, the reduced method on patches, streaming over fields."""
 import numpy as np
 
 from artdef_addon import cost, fit as F, patches, quality, samples
@@ -36,7 +36,7 @@ def test_reduced_method_is_chosen_for_speed_and_the_estimate_prices_the_fit():
 
 def test_estimate_time_reads_as_a_duration():
     """The estimate's time as the command line and the panel print it: no "0 s" for a fit that
-    takes a fraction of a second (issue 16 quotes the panel's "0 s" for a five-minute search)."""
+    takes a fraction of a second, and none for a search of minutes."""
     assert cost.format_seconds(0.3) == "under 1 s"
     assert cost.format_seconds(45.4) == "45 s"
     assert cost.format_seconds(750.0) == "12 min"
@@ -113,8 +113,8 @@ def _coarsen_by_definition(n, adjacency, agree, target, max_size):
 
 
 def test_patch_rounds_on_the_patch_graph_match_the_definition():
-    """The rounds run on the patch graph (issue 16: the 1M-triangle scan's patches took half its
-    features stage); the patches are those of the definition, ties and size limits included."""
+    """The rounds run on the patch graph (on every triangle edge they take half the features stage of
+    a 1M-triangle scan); the patches are those of the definition, ties and size limits included."""
     rng = np.random.default_rng(3)
     scan = samples.make("branching")
     from artdef_addon import clustering
@@ -171,9 +171,9 @@ def test_reduced_method_counts_triangles_not_patches():
 def test_estimate_prices_the_patch_streams_memory():
     """The reduced method streams every triangle's features, two fields at a time, which is a
     million-triangle fit's peak: the estimate's price of it (``cost.stream_bytes``) must match the
-    measured rise of the peak RSS while the Segmenter builds its patches (issue 16: the estimate
-    within 2 x; it priced one field's cached features per triangle, 2.3 x under the measured peak
-    of the 1.03M-triangle scan)."""
+    measured rise of the peak RSS while the Segmenter builds its patches (the estimate within 2 x;
+    one field's cached features per triangle would price it 2.3 x under the measured peak of the
+    1.03M-triangle scan)."""
     import os
     import sys
     import pytest

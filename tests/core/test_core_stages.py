@@ -299,7 +299,7 @@ def _rod_decomposition(labels, scan):
 
 
 def test_split_repairs_two_bones_in_one_link_and_keeps_a_right_rig():
-    """Issue 19 point 1, known answer: the blended three-link rod labelled wrongly — bone 1 in two
+    """Known answer: the blended three-link rod labelled wrongly — bone 1 in two
     links, bones 2 and 3 in one — gets its true partition back from one split (the merged link cut
     in two, one of bone 1's links dropped); labelled rightly, nothing is split."""
     from artdef_addon import quality, splits
@@ -343,8 +343,8 @@ def test_dominant_faces_gives_a_starved_link_back_its_units_only():
 
 def test_fitted_faces_belong_to_the_link_dominating_the_kept_skin():
     """Tracked scans with the refined skin: every face of the result goes to the link with the largest
-    summed weight over its corners in the skin the rig keeps (issue 19: a seam left half a bone off
-    by an earlier decomposition lost a finger joint on RobotExpressive). A heavily blended branching
+    summed weight over its corners in the skin the rig keeps (a seam left half a bone off by an
+    earlier decomposition loses a finger joint on RobotExpressive). A heavily blended branching
     object, where the relabelling's and the split's last labels left 8 faces off that rule."""
     from artdef_addon import merge
     scan, truth = samples.make_with_truth("branching", n_fields=12, blend=4.0, seed=2)

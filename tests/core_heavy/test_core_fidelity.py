@@ -1,4 +1,4 @@
-"""Fidelity you can quote (issue 19): the Karni–Gotsman distortion, E_RMS, the model verdict."""
+"""Fidelity you can quote: the Karni–Gotsman distortion, E_RMS, the model verdict."""
 from pathlib import Path
 
 import numpy as np
@@ -91,7 +91,7 @@ def test_result_file_keeps_the_new_figures_and_old_files_still_load(tmp_path):
               "linear_error_percent"):
         assert getattr(back, k) == pytest.approx(getattr(r, k), rel=1e-12)
     assert back.linear_rank == r.linear_rank and back.articulated is False and back.notes == r.notes
-    with np.load(path) as z:       # a file written before issue 19: none of its keys
+    with np.load(path) as z:       # a file of an older version: none of its keys
         old = {k: z[k] for k in z.files if k not in F._FIDELITY + ("notes", "linear_rank", "articulated")}
     np.savez(tmp_path / "old.npz", **old)
     o = F.load_result(tmp_path / "old.npz")
@@ -99,12 +99,11 @@ def test_result_file_keeps_the_new_figures_and_old_files_still_load(tmp_path):
     assert o.articulation_error_percent == pytest.approx(r.articulation_error_percent)
 
 
-#: issue 19 point 1: RobotExpressive's seed 24 lost a finger joint until the faces followed the kept skin
-#: (fit._dominant_skin_labels), seeds 41 and 69 until the split trials got wider drop candidates (the cut
-#: link's neighbour, the link the skin uses least); the sweep over 77 seeds is in docs/metrics.md. A rig
-#: made for the stop 28 QA pass (tests/data/README.md: a claw of bones 1.65 % of the diagonal long) lost
-#: two claw joints on seed 4 until the link its skin dominates least became a drop candidate
-#: (splits.DOMINATED_SHARE)
+#: seeds that each need one of the rules of docs/metrics.md, "Every true joint": RobotExpressive's seed 24
+#: loses a finger joint unless the faces follow the kept skin (fit._dominant_skin_labels), seeds 41 and 69
+#: without the split trials' wider drop candidates (the cut link's neighbour, the link the skin uses least);
+#: the claw (tests/data/README.md: bones 1.65 % of the diagonal long) loses two claw joints on seed 4 unless
+#: the link its skin dominates least is a drop candidate (splits.DOMINATED_SHARE)
 
 @pytest.mark.parametrize("name,seed", [("gltf_CesiumMan", 4), ("threejs_RobotExpressive", 6),
                                        ("threejs_RobotExpressive", 24), ("threejs_RobotExpressive", 41),

@@ -1,4 +1,4 @@
-"""Tracked scans (issue 5): refined weights, automatic link count, real rigs, no collapse."""
+"""Tracked scans: refined weights, automatic link count, real rigs, no collapse."""
 from pathlib import Path
 
 import numpy as np
@@ -384,7 +384,7 @@ def test_real_rig_fresh_poses(name, capsys):
               f"of {len(err)}, articulation error {r.articulation_error_percent:.2f}%")
     assert ari >= 0.95
     assert r.articulation_error_percent < 3.0
-    # issue 5: every joint between two links that own faces within 2% of the diagonal
+    # the bar: every joint between two links that own faces within 2% of the diagonal
     assert np.all(err / diag < 0.02), np.round(100 * err / diag, 2)
 
 
