@@ -26,6 +26,7 @@ import numpy as np
 from . import cost as _cost
 from . import fit as _fit
 from . import linkcount as _linkcount
+from . import seams as _seams
 from .options import FitOptions, OptionsError
 from .files import read_scan as load_scan
 from .scan import Scan, ScanError, validate_scan
@@ -137,6 +138,10 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
     (``fit(scan, 5, skin="seam")``). ``progress(stage, fraction) -> bool``: called as the fit
     goes; returning True cancels it (:class:`FitCancelled`, nothing produced).
 
+    Vertices the scan stores more than once (copies at seams: the same rest position and motion,
+    :mod:`seams`) are one point to the fit; the result is on the scan's own vertices, every copy
+    with its point's values.
+
     Returns a :class:`FitResult`: links ``face_labels (T,)``, tree ``parents (L,)``, joints
     ``(L, 3)``, skin ``weights (N, L)``, pose parameters ``angles, locations (P, L, 3)``, rest-space
     residual ``(P, N, 3)`` … and ``save(path)`` / ``FitResult.load(path)``.
@@ -148,7 +153,8 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
         if isinstance(links, bool) or not isinstance(links, (int, np.integer)):
             raise ScanError(f"links must be a whole number or 'auto', got {links!r}")
         links = int(links)
-    scan = validate_scan(scan)
+    stored = validate_scan(scan)
+    scan, weld = _seams.weld_scan(stored)      # copies at seams are one point to the fit
     requested, o = o, o.resolved(scan.kind)
     if o.mode == "pseudo" and scan.greens is None:
         raise ScanError("pseudo-articulation needs a Green's-matrix scan (one model per load column)")
@@ -181,7 +187,7 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
         seg_ok = True
     finally:
         _checkin(key, seg, keep=seg_ok)
-    return result
+    return _seams.expand_result(result, weld, stored)   # on the file's own vertices
 
 
 def _search_timings(search: float, fit_timings: dict, after: float) -> dict:
@@ -198,7 +204,7 @@ def segment(scan: Scan, links: int, options: FitOptions | None = None, progress=
     triangle for ``links`` links, whether the reduced method ran and the core's notes — from the
     same segmentation a :func:`fit` with these options makes (and keeps)."""
     o = _options(options, {})
-    scan = validate_scan(_as_scan(scan))
+    scan, _ = _seams.weld_scan(validate_scan(_as_scan(scan)))
     o = o.resolved(scan.kind)
     key, seg = _checkout(scan, o, progress)
     seg_ok = False
@@ -214,7 +220,7 @@ def cached(scan: Scan, options: FitOptions | None = None):
     """The kept segmentation that a fit of ``scan`` with ``options`` would reuse, or None
     (nothing computed; for front ends that show whether a preview will be instant)."""
     o = _options(options, {})
-    scan = validate_scan(scan)
+    scan, _ = _seams.weld_scan(validate_scan(scan))
     o = o.resolved(scan.kind)
     est, _ = plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind, o)
     return _SEGMENTERS.get(_key(scan, o, est.reduced))

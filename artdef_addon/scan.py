@@ -70,6 +70,8 @@ class Scan:
     # set by validate_scan: the (read-only) arrays and probe load it checked; a scan validated
     # once is not checked again while it holds exactly these (held here, so never recycled)
     _checked: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
+    # set by seams.weld_scan: (the _checked it welded, tolerance, scan of the distinct points, weld)
+    _welded: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def _inputs(self) -> tuple:
         return (self.vertices, self.faces, self.greens, self.displacements, self.load_vertices,
