@@ -1,0 +1,105 @@
+"""Meshes as files store them: split at seams, against the same mesh welded.
+
+For each rigged set (its own poses, the true link count) the mesh is fitted welded (as the data set
+stores it), with a seam across the body (the triangles above the median height get their own copies
+of their vertices), split into UV islands (one per true bone), and as triangle soup (every corner its
+own vertex). Each line prints the stored and distinct vertex counts, the Karni–Gotsman error, the fit's
+seconds and both as ratios to the welded fit; "no weld" fits the seam-across-the-body mesh through the
+core's ``fit.fit``, which does not close seams (what every fit did before). The issue's bars: error
+≤ 1.1 × welded + 0.02 points, a cut mesh ≤ 1.2 × + 0.01 points in ≤ 1.5 × the time.
+
+    .venv/bin/python benchmarks/seams.py [--data ../shared/data] [--only CesiumMan] [--repeats 3]
+
+Writes ``benchmarks/results/seams.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "tests"))
+import artdef_addon  # noqa: E402
+from artdef_addon import api, fit as F  # noqa: E402
+from artdef_addon.scan import Scan  # noqa: E402
+from seam_files import split  # noqa: E402
+
+SETS = ("gltf_CesiumMan", "gltf_Fox", "threejs_RobotExpressive")
+
+
+def cases(v, f, d, gt):
+    c = v[f].mean(1)
+    up = int(np.ptp(v, axis=0).argmax())
+    yield "welded", (v, f, d), True
+    for name, islands in (("seam across the body", (c[:, up] > np.median(c[:, up])).astype(int)),
+                          ("UV islands (one per bone)", gt), ("triangle soup", np.arange(len(f)))):
+        sv, sf, sd, _ = split(v, f, d, islands)
+        yield name, (sv, sf, sd), True
+        if name.startswith("seam"):
+            yield "seam across the body, no weld", (sv, sf, sd), False
+
+
+def timed(scan, links, weld, repeats):
+    secs, r = [], None
+    for _ in range(repeats):
+        api.clear_cache()
+        t = time.perf_counter()
+        r = artdef_addon.fit(scan, links) if weld else F.fit(scan, links)
+        secs.append(time.perf_counter() - t)
+    return r, float(np.median(secs))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=os.path.join(ROOT, "..", "shared", "data"))
+    ap.add_argument("--only", default="")
+    ap.add_argument("--repeats", type=int, default=1)
+    a = ap.parse_args(argv)
+    rows = []
+    t_all = time.perf_counter()
+    for name in SETS:
+        if a.only and not any(o in name for o in a.only.split(",")):
+            continue
+        path = os.path.join(a.data, name + ".npz")
+        if not os.path.isfile(path):
+            path = os.path.join(ROOT, "tests", "data", name + ".npz")
+        z = np.load(path)
+        v, f, d, gt = z["vertices"], z["faces"], z["displacements"], z["gt_face_labels"]
+        links = int(z["gt_parents"].shape[0])
+        base = None
+        for case, (sv, sf, sd), weld in cases(v, f, d, gt):
+            r, secs = timed(Scan(sv, sf, displacements=sd), links, weld, a.repeats)
+            distinct = len(np.unique(sv, axis=0))
+            err = r.articulation_error_percent
+            if base is None:
+                base = (err, secs)
+            row = (name.split("_", 1)[1], links, case, len(sv), distinct, err, secs, err / base[0], secs / base[1])
+            rows.append(row)
+            print("{:18s} {:3d} {:32s} {:6d} {:6d} {:8.4f}% {:7.2f}s  x{:6.2f} x{:5.2f}".format(*row), flush=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip()
+    load = os.getloadavg()
+    head = [f"# Meshes split at seams against the same mesh welded (`benchmarks/seams.py`)", "",
+            f"Commit `{commit}`, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.machine()}, "
+            f"{os.cpu_count()} cores, load average {load[0]:.1f} at the end (the machine was shared: seconds are "
+            f"noisy, compare the ratios), median of {a.repeats} fit(s) a line, own poses, the true link count. "
+            f"Wall time {time.perf_counter() - t_all:.0f} s.", "",
+            "| set | links | mesh as stored | stored vertices | distinct | Karni–Gotsman | seconds | error / welded | "
+            "time / welded |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]
+    body = [f"| {s} | {k} | {c} | {n:,} | {u:,} | {e:.4f}% | {t:.2f} | {re:.3f} | {rt:.2f} |"
+            for s, k, c, n, u, e, t, re, rt in rows]
+    out = os.path.join(ROOT, "benchmarks", "results", "seams.md")
+    with open(out, "w") as fh:
+        fh.write("\n".join(head + body) + "\n")
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()
