@@ -10,14 +10,12 @@ core's ``fit.fit``, which does not close seams (what every fit did before). The 
 
     .venv/bin/python benchmarks/seams.py [--data ../shared/data] [--only CesiumMan] [--repeats 3]
 
-Writes ``benchmarks/results/seams.md``.
+Writes ``benchmarks/results/seams.md`` (``--out``).
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
-import subprocess
 import sys
 import time
 
@@ -26,6 +24,8 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "tests"))
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+import report  # noqa: E402
 import artdef_addon  # noqa: E402
 from artdef_addon import api, fit as F  # noqa: E402
 from artdef_addon.scan import Scan  # noqa: E402
@@ -61,6 +61,7 @@ def main(argv=None):
     ap.add_argument("--data", default=os.path.join(ROOT, "..", "shared", "data"))
     ap.add_argument("--only", default="")
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--out", default=report.result_path("seams.md"))
     a = ap.parse_args(argv)
     rows = []
     t_all = time.perf_counter()
@@ -83,22 +84,14 @@ def main(argv=None):
             row = (name.split("_", 1)[1], links, case, len(sv), distinct, err, secs, err / base[0], secs / base[1])
             rows.append(row)
             print("{:18s} {:3d} {:32s} {:6d} {:6d} {:8.4f}% {:7.2f}s  x{:6.2f} x{:5.2f}".format(*row), flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
-    load = os.getloadavg()
-    head = [f"# Meshes split at seams against the same mesh welded (`benchmarks/seams.py`)", "",
-            f"Commit `{commit}`, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {platform.machine()}, "
-            f"{os.cpu_count()} cores, load average {load[0]:.1f} at the end (the machine was shared: seconds are "
-            f"noisy, compare the ratios), median of {a.repeats} fit(s) a line, own poses, the true link count. "
-            f"Wall time {time.perf_counter() - t_all:.0f} s.", "",
+    head = [f"Median of {a.repeats} fit(s) a line, own poses, the true link count, in one process (the machine is "
+            f"shared: compare the ratios). Wall time {time.perf_counter() - t_all:.0f} s.", "",
             "| set | links | mesh as stored | stored vertices | distinct | Karni–Gotsman | seconds | error / welded | "
             "time / welded |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]
     body = [f"| {s} | {k} | {c} | {n:,} | {u:,} | {e:.4f}% | {t:.2f} | {re:.3f} | {rt:.2f} |"
             for s, k, c, n, u, e, t, re, rt in rows]
-    out = os.path.join(ROOT, "benchmarks", "results", "seams.md")
-    with open(out, "w") as fh:
-        fh.write("\n".join(head + body) + "\n")
-    print("wrote", out)
+    report.write(a.out, "Meshes split at seams against the same mesh welded (`benchmarks/seams.py`)",
+                 "\n".join(head + body))
 
 
 if __name__ == "__main__":
