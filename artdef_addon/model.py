@@ -196,6 +196,75 @@ def harden(s, p_max):
     return p_max * (1.0 - ((p_max - 1.0) / p_max) ** s)
 
 
+def linear_displacement(parents, heads, frames, weights, params, x) -> np.ndarray:
+    """The rig's first-order (linearised) motion: d/dε of the skinned positions of ``x`` (N, 3)
+    at pose ε·``params`` (..., L, 6), at ε = 0 → (..., N, 3) (paper Eq. 2 linearised; METHOD §7.3).
+
+    At the rest pose every link transform is the identity and R_z R_y R_x has derivative
+    [e_x]× dx + [e_y]× dy + [e_z]× dz, so link l's local transform moves by A_l = [B_l ω_l]×,
+    b_l = B_l loc_l − A_l h_l, and a child's world motion is its parent's plus its own:
+    u(v) = Σ_l w_l(v) (A_l x(v) + b_l), the A_l and b_l summed along the tree."""
+    params = np.asarray(params, dtype=np.float64)
+    w = np.einsum("lij,...lj->...li", frames, params[..., :3])
+    A = np.zeros(w.shape + (3,))
+    A[..., 0, 1], A[..., 0, 2], A[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    A[..., 1, 0], A[..., 2, 0], A[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    b = np.einsum("lij,...lj->...li", frames, params[..., 3:]) - np.einsum("...lij,lj->...li", A, heads)
+    Aw, bw = np.empty_like(A), np.empty_like(b)
+    for l in topological_order(parents):
+        p = parents[l]
+        Aw[..., l, :, :] = A[..., l, :, :] + (Aw[..., p, :, :] if p >= 0 else 0.0)
+        bw[..., l, :] = b[..., l, :] + (bw[..., p, :] if p >= 0 else 0.0)
+    return np.einsum("...nij,nj->...ni", blended_linear(weights, Aw), x) + np.matmul(weights, bw)
+
+
+#: the probe-exactness bump of the residual (:func:`greens_keys`): (s e^(1−s))^BUMP_POWER, 1 at
+#: the probe load (s = 1), below s²/40 for s ≤ 0.1 and below 1e-4 from s = 4 on
+BUMP_POWER = 6
+
+
+def hardening_slope(p_max) -> float:
+    """d s̃/ds at s = 0 of :func:`harden` (1 when off): p_max ln(p_max/(p_max − 1)) (METHOD §10)."""
+    return 1.0 if p_max is None else float(p_max * np.log(p_max / (p_max - 1.0)))
+
+
+def greens_keys(result, rest) -> np.ndarray:
+    """The residual shape keys of a Green's rig, (2P, N, 3): P first-order keys, then P bump keys
+    (paper Eq. 6, §7.1; docs/greens.md).
+
+    The fit's residual δ_c makes the rig reproduce field c at the probe load p̂ (x0 + p̂ Ξ e_c =
+    skin(κ_c p̂, x0 + δ_c)). Scaled linearly in the load it would carry the articulation's
+    second-order terms at p̂ along linearly, so the rig's tangent at zero load would not be G. The
+    first-order key is measured against the articulation's linearised motion
+    (:func:`linear_displacement`): Δ_c = p̂ Ξ e_c − J κ_c p̂, which, with the hardening's slope σ
+    at zero (:func:`hardening_slope`) dividing its value, gives the rig G as its derivative at
+    zero load; the bump key η_c = δ_c − Δ_c/σ, on with a weight that is 1 at the probe load and
+    vanishes to sixth order at zero and fast beyond a few probe loads (:func:`greens_key_values`),
+    keeps the probe fields exact. ``rest`` (N, 3): the rest positions."""
+    ph = float(result.probe_load)
+    params = np.transpose(np.asarray(result.kappa, dtype=np.float64), (2, 0, 1)) * ph    # (P, L, 6)
+    R, t = forward_kinematics(result.parents, result.heads, result.frames, params)
+    B = blended_linear(result.weights, R)
+    art = np.einsum("pnij,nj->pni", B, rest) + np.matmul(result.weights, t)
+    delta = np.asarray(result.residual, dtype=np.float64)
+    field = art + np.einsum("pnij,pnj->pni", B, delta) - rest
+    first = field - linear_displacement(result.parents, result.heads, result.frames, result.weights, params, rest)
+    return np.concatenate([first, delta - first / hardening_slope(result.p_max)])
+
+
+def greens_key_values(result, loads) -> np.ndarray:
+    """Values (2P,) of :func:`greens_keys` for loads (M, 3): first-order key 3k+d at
+    h(p_k)_d / (p̂ σ) (hardening h on the residual only, A-17), bump key 3k+d at
+    (p_kd/p̂)² s^(n−2) e^(n(1−s)), s = |p_k|/p̂, n = :data:`BUMP_POWER` (for a load along an axis,
+    (s e^(1−s))^n)."""
+    loads = np.asarray(loads, dtype=np.float64).reshape(-1, 3)
+    s = np.linalg.norm(loads, axis=1) / result.probe_load
+    first = shape_values_for_loads(result, loads) / hardening_slope(result.p_max)
+    q = loads / result.probe_load
+    bump = q * q * (s ** (BUMP_POWER - 2) * np.exp(BUMP_POWER * (1.0 - s)))[:, None]
+    return np.concatenate([first, bump.reshape(-1)])
+
+
 def pose_params_for_loads(result, loads) -> np.ndarray:
     """Joint angles linear in load (rotational springs, paper §7): params = κ · p, (L, 6)."""
     loads = np.asarray(loads, dtype=np.float64).reshape(-1)
@@ -233,4 +302,6 @@ def evaluate_loads(result, rest, loads) -> np.ndarray:
         return out
     if result.kappa is None:
         raise ValueError("this fit has no loads (tracked scan): pose it with deform()")
-    return deform(result, rest, pose_params_for_loads(result, loads), shape_values_for_loads(result, loads))
+    R, t = forward_kinematics(result.parents, result.heads, result.frames, pose_params_for_loads(result, loads))
+    x = rest + np.einsum("c,cnd->nd", greens_key_values(result, loads), greens_keys(result, rest))
+    return skin(result.weights, R, t, x)

@@ -38,6 +38,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
+from ..artdef_addon import model as _model
 from . import compat, io
 
 GROUP_FMT = "artdef_link_{:02d}"
@@ -54,6 +55,11 @@ SLIDER_RANGE = 10.0          # Blender's hard limit for shape key sliders
 #: Longest driver expression written (Blender keeps 255 characters).  Longer
 #: sums are split into partial sums held in custom properties of the armature.
 MAX_EXPRESSION = 250
+#: a Green's rig's posing version, stored on its armature (``RIG_VERSION_PROP``): 2 = first-order
+#: and bump residual keys (model.greens_keys); a Green's rig without it was built with the probe
+#: residual scaled linearly and is told to be refitted (:func:`stale_greens_rig`)
+RIG_VERSION = 2
+RIG_VERSION_PROP = "artdef_rig_version"
 _AXES = "xyz"
 
 
@@ -254,10 +260,9 @@ def _drive_linear(owner, path, index, coeffs, empties, arm_obj, tag):
 
 
 def shape_value_expression(k, d, probe_load, p_max):
-    """Simple expression of shape key value c = 3k+d from load k (x<k>, y<k>, z<k>).
-
-    value = h(p_k)[d] / p̂, with h the strain-hardening map (identity when off).
-    """
+    """Simple expression of first-order shape key value c = 3k+d from load k (x<k>, y<k>, z<k>):
+    h(p_k)[d] / (p̂ σ), h the strain-hardening map and σ its slope at zero (identity and 1 when
+    off; :func:`artdef_addon.model.greens_key_values`)."""
     x, y, z = (f"{a}{k}" for a in _AXES)
     v = f"{_AXES[d]}{k}"
     if p_max is None:
@@ -265,7 +270,19 @@ def shape_value_expression(k, d, probe_load, p_max):
     # s~ = p_max (1 - q^s), q = (p_max-1)/p_max, s = |p|/p̂  ->  q^s = exp(|p| ln(q)/p̂)
     rate = math.log((p_max - 1.0) / p_max) / probe_load
     n = f"sqrt({x}*{x}+{y}*{y}+{z}*{z})"
-    return f"{_num(p_max)}*(1-exp({_num(rate)}*{n}))*{v}/max({n},1e-30)"
+    return f"{_num(p_max / _model.hardening_slope(p_max))}*(1-exp({_num(rate)}*{n}))*{v}/max({n},1e-30)"
+
+
+def bump_value_expression(k, d, probe_load):
+    """Simple expression of bump shape key value c = 3k+d from load k: (p_kd/p̂)² s⁴ e^(6(1−s)),
+    s = |p_k|/p̂ (:data:`artdef_addon.model.BUMP_POWER` = 6; :func:`artdef_addon.model.greens_key_values`)."""
+    x, y, z = (f"{a}{k}" for a in _AXES)
+    v = f"{_AXES[d]}{k}"
+    n2 = f"({x}*{x}+{y}*{y}+{z}*{z})"
+    i2 = _num(1.0 / probe_load ** 2)
+    power = _model.BUMP_POWER
+    return (f"{v}*{v}*{i2}*" + "*".join([f"{n2}*{i2}"] * ((power - 2) // 2))
+            + f"*exp({_num(power)}-{_num(power / probe_load)}*sqrt({n2}))")
 
 
 # --------------------------------------------------------------------------
@@ -275,6 +292,17 @@ def shape_value_expression(k, d, probe_load, p_max):
 def has_rig(obj):
     st = obj.artdef
     return bool(st.rig or len(st.groups) or len(st.shape_keys) or obj.modifiers.get(MODIFIER_NAME))
+
+
+def stale_greens_rig(obj) -> bool:
+    """True when ``obj``'s rig is a Green's rig (load helper bones) built before
+    :data:`RIG_VERSION`: it still poses as it did (its keys and drivers are in the file), but its
+    residual keys were scaled linearly from the probe load, so it is wrong to first order between
+    and below the probe loads; the panel says to refit it."""
+    arm = obj.artdef.rig
+    if arm is None or arm.type != 'ARMATURE' or arm.data.bones.get(HELPER_FMT.format(0)) is None:
+        return False
+    return int(arm.get(RIG_VERSION_PROP, 1)) < RIG_VERSION
 
 
 def _remove_object(ob):
@@ -901,7 +929,6 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
     L = int(result.n_links)
     weights = np.asarray(result.weights, dtype=np.float64)
     residual = np.asarray(result.residual, dtype=np.float64)
-    n_fields = residual.shape[0]
 
     # 1. vertex groups
     for l in range(L):
@@ -942,6 +969,9 @@ def build_rig(context, obj, result, tri_polygons, kind, load_names=None, frames_
     ref_co = np.empty(3 * n, dtype=np.float32)
     io.key_points(keys.reference_key).foreach_get("co", ref_co)
     ref_co = ref_co.reshape(n, 3).astype(np.float64)
+    if greens:     # first-order and bump keys (model.greens_keys): the rig's tangent at zero load is G
+        residual = _model.greens_keys(result, ref_co)
+    n_fields = residual.shape[0]
     width = max(3, len(str(n_fields - 1)))
     key_names = []
     for c in range(n_fields):
@@ -1051,13 +1081,16 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
     keys = obj.data.shape_keys
     probe = float(result.probe_load)
     p_max = None if result.p_max is None else float(result.p_max)
+    first = len(key_names) // 2
     for c, kname in enumerate(key_names):
-        k, d = divmod(c, 3)
+        k, d = divmod(c % first, 3)
         fc = _driver_fcurve(keys.driver_add(f'key_blocks["{kname}"].value'))
         drv = fc.driver
         drv.type = 'SCRIPTED'
         _add_load_vars(drv, empties, [(k, 0), (k, 1), (k, 2)])
-        drv.expression = shape_value_expression(k, d, probe, p_max)
+        drv.expression = (shape_value_expression(k, d, probe, p_max) if c < first
+                          else bump_value_expression(k, d, probe))
+    arm[RIG_VERSION_PROP] = RIG_VERSION
     return empties
 
 

@@ -158,6 +158,8 @@ class ARTDEF_PT_main(bpy.types.Panel):
                 col.label(text=st.fit_replay.capitalize(), icon='ACTION')
             if st.rig is not None:
                 col.label(text=f"Rig: {st.rig.name}", icon='OUTLINER_OB_ARMATURE')
+                if rig.stale_greens_rig(obj):
+                    col.label(text="Built by an earlier version: refit to pose small loads exactly", icon='ERROR')
             _draw_colours(box, mesh, st)
             if len(st.fit_link_stats):
                 _draw_link_stats(box, st)
@@ -170,6 +172,8 @@ class ARTDEF_PT_main(bpy.types.Panel):
                     sub.label(text=line)
         elif rig.has_rig(obj):
             layout.label(text="Rig present (no summary)", icon='INFO')
+            if rig.stale_greens_rig(obj):
+                layout.label(text="Built by an earlier version: refit to pose small loads exactly", icon='ERROR')
 
 
 def _gb(nbytes):

@@ -194,7 +194,8 @@ def check_rig(pkg, obj, links, n_fields):
     assert [b.name for b in arm.data.bones if b.use_deform] == names
     check_load_helpers(pkg, arm, names, greens=result.kappa is not None)
     keys = obj.data.shape_keys.key_blocks
-    assert len(keys) == n_fields + 1 and keys[0].name == "Basis"
+    # a Green's rig: a first-order and a bump key per field (model.greens_keys)
+    assert len(keys) == (2 if result.kappa is not None else 1) * n_fields + 1 and keys[0].name == "Basis"
     assert all(k.name.startswith("artdef_field_") for k in keys[1:])
     # bones: heads, tree, rotation mode; world = armature space (identity object transforms)
     for l, name in enumerate(names):
@@ -337,7 +338,7 @@ def test_pseudo_mode_builds_one_load_points_rig(clean_scene, pkg, sample_files):
     assert result.kappa.shape[2] == 3
     loads_objs = [o.name for o in bpy.data.objects if o.name.startswith("artdef_load_")]
     assert loads_objs == ["artdef_load_2"]
-    assert len(obj.data.shape_keys.key_blocks) == 1 + 3
+    assert len(obj.data.shape_keys.key_blocks) == 1 + 2 * 3
     bpy.data.objects["artdef_load_2"].location = LOADS[2]
     x = evaluated_positions(obj)
     want = pkg.model.evaluate_loads(result, rest, LOADS[2:3])
