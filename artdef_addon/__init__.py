@@ -36,7 +36,7 @@ if _sys.argv[:1] == ["-m"]:
 
 from . import fit, samples, scan
 from .api import load_scan, segment
-from .fit import FitCancelled, FitResult
+from .result import FitCancelled, FitResult
 from .options import FitOptions, OptionsError
 from .scan import Scan, ScanError
 

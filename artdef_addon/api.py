@@ -26,7 +26,9 @@ import numpy as np
 from . import cost as _cost
 from . import fit as _fit
 from . import linkcount as _linkcount
+from . import pipeline as _pipeline
 from . import seams as _seams
+from . import segmenter as _segmenter
 from .options import FitOptions, OptionsError
 from .files import read_scan as load_scan
 from .scan import Scan, ScanError, validate_scan
@@ -85,7 +87,7 @@ def _checkout(scan: Scan, o: FitOptions, progress):
     key = _key(scan, o, est.reduced)
     seg = _SEGMENTERS.pop(key, None)
     if seg is None:
-        seg = _fit.Segmenter(scan, progress, strategy=o.strategy, reduce=reduce_arg, budget=o.budget_bytes)
+        seg = _segmenter.Segmenter(scan, progress, strategy=o.strategy, reduce=reduce_arg, budget=o.budget_bytes)
         key = _key(scan, o, seg.reduced)     # what the core built (the plan predicts it)
     seg.progress = progress
     return key, seg
@@ -129,7 +131,7 @@ def _options(options, overrides) -> FitOptions:
     return options.replace(**overrides) if overrides else options
 
 
-def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **overrides) -> "_fit.FitResult":
+def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **overrides) -> "_pipeline.FitResult":
     """Fit an articulated deformable model to ``scan`` (paper §5–§7).
 
     ``links``: the number of links, or ``"auto"`` to choose it from the data (up to
@@ -174,7 +176,7 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
                 result.p_max = o.p_max
                 result.timings = _search_timings(search, result.timings, 0.0)
         if result is None:
-            result = _fit.fit(scan, links, mode=o.mode, motion=o.motion, p_max=o.p_max,
+            result = _pipeline.fit(scan, links, mode=o.mode, motion=o.motion, p_max=o.p_max,
                               progress=progress, segmenter=seg, skin=o.skin)
             if auto:
                 result.timings = _search_timings(search, result.timings, result.timings.get("total", 0.0))

@@ -164,7 +164,7 @@ def _cmd_info(a) -> int:
     from . import files
     d = files.read_npz(a.path)          # BadFile: one line naming the file
     if "face_labels" in d:
-        from .fit import FitResult
+        from .result import FitResult
         res = FitResult.load(a.path)
         print(f"{a.path}: fit result")
         print(res.summary())
@@ -318,7 +318,7 @@ def _utf8(path: str) -> bool:
 def _cmd_fit(a) -> int:
     from . import api, files
     from . import cost as _cost
-    from . import fit as fit_module
+    from . import result as result_module
     R = {name: opt.range for name, (_, opt) in FitOptions.declaration().items() if not opt.choices}
     t0 = time.perf_counter()
     blender = bool(a.blend or a.glb or a.fbx or a.png)
@@ -449,7 +449,7 @@ def _cmd_fit(a) -> int:
     rot_err = None
     with files.Outputs() as out:
         if a.output:
-            out.write_npz(a.output, fit_module.result_arrays(result), compress=True)
+            out.write_npz(a.output, result_module.result_arrays(result), compress=True)
         if blender:
             # temporaries first (registered for clean-up), then the Blender stage: the rig is built
             # from this result, one fit per command

@@ -134,7 +134,7 @@ class SearchProgress:
         frac = 1.0 if final else min(0.99, (self.done + extra) / max(self.planned, 1e-12))
         self.last = max(self.last, frac)
         if self.progress("links", self.last):
-            from .fit import FitCancelled
+            from .result import FitCancelled
             raise FitCancelled("cancelled while choosing the link count")
 
     def step(self, units: float) -> None:
@@ -170,7 +170,7 @@ def articulation_error_curve(seg, max_links: int, progress=None, counts=None) ->
         if isinstance(progress, SearchProgress):
             progress.step(_cost.CURVE_FITS_PER_COUNT if k > 1 else 0.0)
         elif progress is not None and progress("links", (k - 1) / max_links):
-            from .fit import FitCancelled
+            from .result import FitCancelled
             raise FitCancelled("cancelled while choosing the link count")
         out[k - 1] = curve_error(seg, k)
     if isinstance(progress, SearchProgress):
@@ -418,7 +418,7 @@ def _drop_non_bones(seg, k: int, fits: dict, progress=None):
     """From ``k``, while the fit has links that are not bones (:func:`spurious_links`), take that
     many links off and fit again. Returns (k, [(count, such links), ...]). ``progress``: a
     callback or a :class:`SearchProgress`."""
-    from .fit import fit
+    from .pipeline import fit
     scan = seg.scan
     search = progress if isinstance(progress, SearchProgress) else SearchProgress(progress, 1.0)
     steps = []
@@ -510,7 +510,7 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     ...] with how "grown" / "whole" / "non-bones" (stops), "explained", "continue" (whole fits), "grown
     continue"); the figures and the whole fits' agreement: ``benchmarks/results/links_auto.md``.
     ``work["grown_links"]`` counts the links grown."""
-    from .fit import fit
+    from .pipeline import fit
     work = {} if work is None else work
     scan = seg.scan
     x0, faces, fields = scan.vertices, scan.faces, scan.fields()
@@ -660,7 +660,7 @@ def partial_fit(seg, k: int, progress=None, start=None):
     ``fit.fit(..., resume=(state, seconds))`` finishes the same fit. ``start``: face labels (T,)
     of ``k`` links to start from instead of the Segmenter's cut (:func:`fit.fit_until`: a count the
     search climbed to, from the links grown on the count below)."""
-    from .fit import fit_until
+    from .pipeline import fit_until
     scan = seg.scan
     x0, fields = scan.vertices, scan.fields()
     st, secs = fit_until(seg, k, "split", progress, labels=start)
@@ -672,7 +672,7 @@ def partial_fit(seg, k: int, progress=None, start=None):
 def _whole_fits_upward(seg, k: int, max_links: int, window: int, progress=None, fits=None):
     """From ``k``, add links while the whole fits' articulation error (running minimum) over the
     next ``window`` counts falls faster than k^(−WHOLE_FIT_SLOPE). Returns (k, {count: error %})."""
-    from .fit import fit
+    from .pipeline import fit
     errors: dict[int, float] = {}
     fits = {} if fits is None else fits
     start = k

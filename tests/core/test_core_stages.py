@@ -4,6 +4,7 @@ import pytest
 from scipy.cluster.hierarchy import linkage
 from scipy.spatial.transform import Rotation
 
+from artdef_addon import segmenter as SG, stages as ST
 from artdef_addon import clustering, fit as F, joints, metric, model, quality, samples
 from artdef_addon.frames import relative_motions
 
@@ -86,7 +87,7 @@ def test_link_motions_of_unclustered_fields_are_their_medoid_units_motions(monke
     """A scan with more fields than the segmentation clusters: every other field's link motion is
     the motion ν (field_features) of the link's medoid unit in the clustered field nearest to it in
     displacement — the same arrays whether those fields are done one at a time or in one chunk."""
-    monkeypatch.setattr(F, "SEGMENT_FIELDS", 4)
+    monkeypatch.setattr(SG, "SEGMENT_FIELDS", 4)
     scan = samples.make("branching", n_fields=12, noise=0.01)
     seg = F.Segmenter(scan)
     assert len(seg.clustered) == 4
@@ -96,7 +97,7 @@ def test_link_motions_of_unclustered_fields_are_their_medoid_units_motions(monke
     args = (scan.vertices, fields, scan.faces, seg.full_labels(labels), medoids.shape[0], "robust", seg, medoids,
             used, idx)
     R, t = F.link_motions(*args)
-    monkeypatch.setattr(F, "NEAR_BLOCK", 1)            # one field a chunk, the nearest fields searched again
+    monkeypatch.setattr(ST, "NEAR_BLOCK", 1)            # one field a chunk, the nearest fields searched again
     seg.nearest_field = {}
     R1, t1 = F.link_motions(*args)
     assert np.array_equal(R, R1) and np.array_equal(t, t1)
@@ -423,12 +424,12 @@ def test_residual_blocks_reproduce_every_field_exactly():
     scan = samples.make("branching")
     res = {}
     for nbytes in (1, 2 ** 30):
-        old = F.RESIDUAL_BLOCK_BYTES
-        F.RESIDUAL_BLOCK_BYTES = nbytes
+        old = ST.RESIDUAL_BLOCK_BYTES
+        ST.RESIDUAL_BLOCK_BYTES = nbytes
         try:
             res[nbytes] = F.fit(scan, 5)
         finally:
-            F.RESIDUAL_BLOCK_BYTES = old
+            ST.RESIDUAL_BLOCK_BYTES = old
     a, b = res[1], res[2 ** 30]
     assert np.allclose(a.residual, b.residual, rtol=0, atol=1e-12)
     assert np.allclose(a.link_residuals, b.link_residuals, rtol=0, atol=1e-12)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
+from artdef_addon import pipeline, stages as ST
 from artdef_addon import files, fit as F, joints, linkcount, quality, samples, scan as S, skinning
 
 DATA = Path(__file__).parent.parent / "data"
@@ -337,7 +338,7 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     files.write_scan(path, scan)
     calls = []
     real_fit = F.fit
-    monkeypatch.setattr(F, "fit", lambda *a, **k: calls.append(a[1]) or real_fit(*a, **k))
+    monkeypatch.setattr(pipeline, "fit", lambda *a, **k: calls.append(a[1]) or real_fit(*a, **k))
     assert cli.main(["fit", str(path), "--links", "auto", "--max-links", "16", "-o", str(tmp_path / "r.npz")]) == 0
     out = capsys.readouterr().out
     assert "links auto: chose 11" in out and "with the link-count search up to 16 links" in out   # priced
@@ -404,8 +405,8 @@ def test_refined_skin_fits_joints_of_fully_blended_links(monkeypatch):
     # and the labels stay the true ones to the end (the faces do not follow the fitted skin, which
     # moves a few seam faces of the true labels, and no link is split: on some machines' round-off
     # a split of a finger link lowered the sampled error by its margin): the joints alone are under test
-    monkeypatch.setattr(F, "_dominant_skin_labels", lambda st: None)
-    monkeypatch.setattr(F, "_split_links", lambda st: setattr(st, "splits", 0))
+    monkeypatch.setattr(ST, "_dominant_skin_labels", lambda st: None)
+    monkeypatch.setattr(ST, "_split_links", lambda st: setattr(st, "splits", 0))
     diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
     within = {}
     for skin in ("seam", "refined"):
