@@ -1,207 +1,24 @@
-"""Seam-blended skin weights (paper Eq. 2, "blended linearly" at the seams; METHOD §8, choice A-15)."""
+"""The refined skin: alternating weight solves and link-motion updates (paper §7, METHOD §8).
+
+:func:`alternate` decomposes the fields into convex per-vertex weights (at most 4 influences) and
+link motions; the weight solve of each round is :func:`.qp.simplex_least_squares` on each vertex's
+candidate links (:mod:`.meshgraph`), the motion update a least-squares fit per link. The seam-blended
+weights are :mod:`.seamblend`'s; the vertex and field samples :mod:`.subsample`'s. Their names are
+also importable from here.
+"""
 from __future__ import annotations
 
 import contextlib
 import functools
-import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from scipy.sparse import coo_matrix, diags
 
-
-def blend_weights(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n_links: int,
-                  rings: int = 1) -> np.ndarray:
-    """w_l(v) = area of v's incident triangles in link l / total incident area, (N, L), rows sum to 1.
-
-    Pure link vertices get weight 1; vertices on a seam are blended over its one-ring. With
-    ``rings`` > 1 the weights are further averaged over vertex neighbourhoods (a band of
-    ``rings`` rings around each seam). A vertex in no triangle (or only in degenerate ones) takes
-    the weights of its incident faces by count, else of link 0.
-    """
-    n = vertices.shape[0]
-    e1 = vertices[faces[:, 1]] - vertices[faces[:, 0]]
-    e2 = vertices[faces[:, 2]] - vertices[faces[:, 0]]
-    area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
-    rows = faces.reshape(-1)
-    cols = np.repeat(labels, 3)
-
-    def incidence(values):
-        return np.asarray(coo_matrix((values, (rows, cols)), shape=(n, n_links)).todense())
-
-    W = incidence(np.repeat(area, 3))
-    tot = W.sum(axis=1)
-    empty = tot <= 0
-    if np.any(empty):
-        Wc = incidence(np.ones(rows.shape[0]))
-        W[empty] = Wc[empty]
-        tot = W.sum(axis=1)
-        still = tot <= 0
-        W[still, 0] = 1.0
-        tot = W.sum(axis=1)
-    W /= tot[:, None]
-    if rings > 1:
-        f = faces
-        a = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(n, n)).tocsr()
-        A = ((A + A.T) > 0).astype(np.float64) + diags(np.ones(n))
-        A = diags(1.0 / np.asarray(A.sum(axis=1)).ravel()) @ A
-        for _ in range(rings - 1):
-            W = A @ W
-        W /= W.sum(axis=1, keepdims=True)
-    return W
-
-
-def _kkt_solve(Q, q, P):
-    """Minimiser of wᵀQw − 2qᵀw subject to Σw = 1 and w = 0 off the rows' sets ``P`` (B, m).
-
-    Q (B, m, m), q (B, m) → (B, m): one (m+1)-square KKT system a row, [[2Q, 1], [1ᵀ, 0]] on the
-    set and an identity row off it (LAPACK; the pseudo-inverse if a system is singular)."""
-    B, m = q.shape
-    Pf = P.astype(np.float64)
-    K = np.empty((B, m + 1, m + 1))
-    np.multiply(Q, (2.0 * Pf)[:, :, None] * Pf[:, None, :], out=K[:, :m, :m])
-    idx = np.arange(m)
-    K[:, idx, idx] += 1.0 - Pf          # w = 0 off the set
-    K[:, :m, m] = Pf
-    K[:, m, :m] = Pf
-    K[:, m, m] = 0.0
-    rhs = np.empty((B, m + 1, 1))
-    rhs[:, :m, 0] = 2.0 * q * Pf
-    rhs[:, m, 0] = 1.0
-    try:
-        z = np.linalg.solve(K, rhs)[..., 0]
-    except np.linalg.LinAlgError:
-        z = np.einsum("nij,nj->ni", np.linalg.pinv(K), rhs[..., 0])
-    return np.where(P, z[:, :m], 0.0)
-
-
-def _active_set(Q, q, valid, max_rounds, w0=None):
-    """Convex optimum on the simplex by a batched Lawson–Hanson active-set method (no support
-    limit). Starts from each row's best single candidate, or from the feasible weights ``w0``
-    (B, m) where they have support on valid candidates (a warm start: the previous round's skin).
-    Returns (w, done): ``done`` marks rows whose KKT conditions hold at the end."""
-    B, m = q.shape
-    rows = np.arange(B)
-    diagQ = np.einsum("nii->ni", Q)
-    scale = np.abs(diagQ).max(axis=1) + np.abs(q).max(axis=1) + 1e-300
-    single = np.where(valid, diagQ - 2 * q, np.inf)
-    j0 = single.argmin(axis=1)
-    w = np.zeros((B, m))
-    w[rows, j0] = 1.0
-    P = np.zeros((B, m), dtype=bool)
-    P[rows, j0] = True
-    if w0 is not None:
-        w0 = np.where(valid, np.maximum(w0, 0.0), 0.0)
-        tot = w0.sum(axis=1)
-        warm = tot > 0
-        w[warm] = w0[warm] / tot[warm, None]
-        P[warm] = w[warm] > 0
-
-    def settle(a):
-        """Optimum on each row's set P, dropping the weights that turn negative (inner loop)."""
-        for _ in range(m):
-            z = _kkt_solve(Q[a], q[a], P[a])
-            wa, Pa = w[a], P[a]
-            neg = Pa & (z <= 0)
-            bad = neg.any(axis=1)
-            ok = ~bad
-            w[a[ok]] = z[ok]
-            if not bad.any():
-                break
-            b = a[bad]
-            wb, zb, nb = wa[bad], z[bad], neg[bad]
-            ratio = np.where(nb, wb / np.maximum(wb - zb, 1e-300), np.inf)
-            alpha = np.clip(ratio.min(axis=1), 0.0, 1.0)
-            wb = wb + alpha[:, None] * (zb - wb)
-            drop = Pa[bad] & (wb <= 1e-14)
-            wb[drop] = 0.0
-            P[b] = Pa[bad] & ~drop
-            w[b] = wb
-            a = b
-
-    if w0 is not None:
-        several = np.flatnonzero(P.sum(axis=1) > 1)
-        if several.size:
-            settle(several)
-    done = np.zeros(B, dtype=bool)
-    live = rows                         # rows still adding links (a row that stops is done for good)
-    for r in range(max_rounds):
-        Ql, ql, Pl, wl = (Q, q, P, w) if r == 0 else (Q[live], q[live], P[live], w[live])
-        g = 2 * (np.einsum("nab,nb->na", Ql, wl) - ql)
-        lam = np.einsum("na,na->n", g, wl)
-        viol = np.where(valid[live] & ~Pl, g - lam[:, None], np.inf)
-        j = viol.argmin(axis=1)
-        act = viol[np.arange(live.size), j] < -1e-10 * scale[live]
-        done[live[~act]] = True
-        live = live[act]
-        if live.size == 0:
-            break
-        P[live, j[act]] = True
-        settle(live)
-    return w, done
-
-
-def simplex_least_squares(Q: np.ndarray, q: np.ndarray, valid: np.ndarray,
-                          max_support: int | None = None, w0: np.ndarray | None = None,
-                          convex: bool = False):
-    """Minimiser of wᵀQw − 2qᵀw over the simplex {w ≥ 0, Σw = 1} on each row's ``valid`` entries,
-    with at most ``max_support`` non-zero weights (default: no limit).
-
-    Batched over rows (Q (N,m,m), q (N,m), m small). The convex optimum comes from a batched
-    Lawson–Hanson active-set method (:func:`_active_set`): exact, and where it uses at most
-    ``max_support`` links it is also the optimum under the limit. Where it uses more, as the
-    skinning-decomposition methods do, the largest ``max_support`` of its weights are re-solved on
-    their own — or the ``max_support`` candidates that fit best alone, whichever is better (so
-    never worse than choosing the links by their single fit). Rows with a single valid candidate
-    get weight 1 on it without a solve. ``w0`` (N, m): feasible weights to start the active set
-    from (the result does not depend on it where the optimum is unique). With ``convex`` the
-    return is ``(w, w_convex)``: also the convex optimum (N, m) (no support limit) — the next
-    round's best start.
-    """
-    N, m = q.shape
-    out = np.zeros((N, m))
-    nvalid = valid.sum(axis=1)
-    one = nvalid == 1
-    out[one] = valid[one]
-    multi = np.flatnonzero(nvalid > 1)
-    if multi.size == 0:
-        return (out, out.copy()) if convex else out
-    top = m if max_support is None else max(1, min(m, int(max_support)))
-    Qm, qm, vm = Q[multi], q[multi], valid[multi]
-    w, done = _active_set(Qm, qm, vm, max_rounds=3 * m, w0=None if w0 is None else w0[multi])
-    if convex:
-        wf = out.copy()
-        wf[multi] = w
-    over = np.flatnonzero(~done | (np.count_nonzero(w > 0, axis=1) > top))
-    if over.size:
-        Qo, qo, vo, wo = Qm[over], qm[over], vm[over], w[over]
-        alone = np.where(vo, np.einsum("nii->ni", Qo) - 2 * qo, np.inf)
-        subs = []
-        for score in (-wo, alone):
-            keep = np.argsort(score, axis=1, kind="stable")[:, :top]
-            sub = np.zeros((over.size, m), dtype=bool)
-            np.put_along_axis(sub, keep, True, axis=1)
-            subs.append(sub & vo)
-        # both choices solved in one batch (rows are independent); a row whose two choices keep
-        # the same links is solved once (the same problem from the same start)
-        other = np.flatnonzero((subs[0] != subs[1]).any(axis=1))
-        pick = np.concatenate([np.arange(over.size), other])
-        sub = np.concatenate([subs[0], subs[1][other]])
-        Qs, qs = Qo[pick], qo[pick]
-        # warm start from the convex optimum's weights on the kept links (feasible there, and
-        # usually the limited optimum's support already): fewer active-set steps, same optimum
-        ws, _ = _active_set(Qs, qs, sub, max_rounds=3 * top, w0=np.where(sub, wo[pick], 0.0))
-        ws = np.maximum(ws, 0.0)
-        ws /= ws.sum(axis=1, keepdims=True)
-        obj = np.einsum("na,nab,nb->n", ws, Qs, ws) - 2 * np.einsum("na,na->n", qs, ws)
-        best = ws[:over.size]
-        better = obj[over.size:] < obj[other]
-        best[other[better]] = ws[over.size:][better]
-        w[over] = best
-    w = np.maximum(w, 0.0)
-    out[multi] = w / w.sum(axis=1, keepdims=True)
-    return (out, wf) if convex else out
+from .meshgraph import REACH_CACHE, candidate_links, link_incidence, vertex_candidates  # noqa: F401
+from .qp import simplex_least_squares  # noqa: F401
+from .seamblend import blend_weights  # noqa: F401
+from .subsample import (SAMPLE_FIELDS, SAMPLE_PER_LINK, SAMPLE_SHARE, SAMPLE_VERTICES,  # noqa: F401
+                        field_sample, vertex_sample)
 
 
 def _homogeneous(vertices: np.ndarray, R: np.ndarray, t: np.ndarray):
@@ -307,115 +124,6 @@ def _pair_quadratic(xh: np.ndarray, G: np.ndarray, cols: np.ndarray) -> np.ndarr
     return Q
 
 
-def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarray, rings: int = 3,
-                    radius: float | None = None) -> np.ndarray:
-    """Which links may weigh on each vertex: (N, L) bool from the vertex–link ``incidence``.
-
-    The links within ``rings`` edge rings, and with ``radius`` (a fraction of the bounding-box
-    diagonal) also every link with a vertex within that geodesic distance along the mesh edges
-    (Dijkstra from each link's vertices; links on another connected piece are never candidates),
-    so a coarse mesh whose edges are longer than the radius still reaches its neighbours. A
-    vertex's own links are always candidates. A vertex that reaches no link (in no triangle, which
-    the scan format allows: METHOD §2 segments triangles, so nothing ties it to a link) has every
-    link as candidate: the data then choose its skin, by the single-link fit and the simplex solve,
-    instead of a 0/0 weight row.
-    """
-    N, L = incidence.shape
-    from .metric import digest
-    mesh = digest(vertices, faces)
-    A, E = _mesh_graph(mesh, vertices, faces)
-    cand = incidence.astype(np.float64)
-    for _ in range(max(rings - 1, 0)):
-        cand = np.minimum(cand + A @ cand, 1.0)
-    cand = cand > 0
-    if radius is not None:
-        from scipy.sparse.csgraph import dijkstra
-        limit = radius * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-        for l in range(L):
-            src = np.flatnonzero(incidence[:, l])
-            if src.size == 0 or limit <= 0:
-                continue
-            key = (mesh, np.float64(limit).tobytes(), digest(src))
-            reach = _REACH.get(key)
-            if reach is None:
-                reach = _REACH.put(key, np.flatnonzero(np.isfinite(
-                    dijkstra(E, directed=False, indices=src, min_only=True, limit=limit))))
-            cand[reach, l] = True
-    cand[~cand.any(axis=1)] = True
-    return cand
-
-
-def _mesh_graph(key: bytes, vertices: np.ndarray, faces: np.ndarray):
-    """The mesh's edge graph, remembered per mesh ``key`` (a fit asks for it in every decomposition):
-    ``A`` (N, N) CSR, 1 where two vertices share an edge, and ``E`` the same edges weighted by their
-    length (for :func:`scipy.sparse.csgraph.dijkstra`)."""
-    hit = _GRAPHS.get(key)
-    if hit is not None:
-        return hit
-    N = vertices.shape[0]
-    f = faces
-    a = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    A = coo_matrix((np.ones(len(a)), (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
-    A = ((A + A.T) > 0).astype(np.float64)
-    length = np.linalg.norm(vertices[a[:, 0]] - vertices[a[:, 1]], axis=1)
-    E = coo_matrix((length + 1e-300, (a[:, 0], a[:, 1])), shape=(N, N)).tocsr()
-    E = E.maximum(E.T)
-    return _GRAPHS.put(key, (A, E))
-
-
-class _Remembered:
-    """Values by key, the oldest forgotten beyond ``size``; safe to share between the threads the
-    trials of a round step on."""
-
-    def __init__(self, size: int):
-        self.size = size
-        self._d: dict = {}
-        self._lock = threading.Lock()
-
-    def get(self, key):
-        with self._lock:
-            return self._d.get(key)
-
-    def put(self, key, value):
-        with self._lock:
-            self._d[key] = value
-            while len(self._d) > self.size:
-                self._d.pop(next(iter(self._d)))
-        return value
-
-
-#: meshes' edge graphs remembered by :func:`_mesh_graph` (a few: one scan's fits use one)
-_GRAPHS = _Remembered(4)
-#: links' geodesic reach remembered by :func:`candidate_links` (a fit's decompositions ask for the
-#: same links again and again: a swap or a relabelling changes a few links' vertices at a time)
-REACH_CACHE = 512
-_REACH = _Remembered(REACH_CACHE)
-
-
-def link_incidence(n_vertices: int, faces: np.ndarray, labels: np.ndarray, L: int, dense: bool = False):
-    """Sparse (N, L) 0/1 matrix (CSC): vertex v touches a triangle of link l. Faces labelled −1
-    count for no link. With ``dense`` an (N, L) bool array instead."""
-    ok = labels >= 0
-    rows = faces[ok].reshape(-1)
-    if dense:
-        inc = np.zeros((n_vertices, L), dtype=bool)
-        inc[rows, np.repeat(labels[ok], 3)] = True
-        return inc
-    inc = coo_matrix((np.ones(rows.size), (rows, np.repeat(labels[ok], 3))), shape=(n_vertices, L)).tocsc()
-    inc.sum_duplicates()
-    inc.data[:] = 1.0
-    return inc
-
-
-def _candidates(vertices, faces, labels, L, rings, radius, ground):
-    """(N, L) candidate links of every vertex (see :func:`candidate_links`); L counts the ground."""
-    N = vertices.shape[0]
-    inc = link_incidence(N, faces, labels, L, dense=True)
-    if ground is not None:
-        inc[:, L - 1] = ground
-    return candidate_links(vertices, faces, inc, rings=rings, radius=radius)
-
-
 #: vertices per block of the refined skin's weight solve (bounded memory at scale)
 SOLVE_BLOCK = 32768
 #: weight solves of at least this many vertices run in halves on two threads (the full-mesh skins)
@@ -446,7 +154,7 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
         t = np.concatenate([t, np.zeros((P, 1, 3))], axis=1)
     L = R.shape[1]
     if cand is None:
-        cand = _candidates(vertices, faces, labels, L, rings, radius, ground)
+        cand = vertex_candidates(vertices, faces, labels, L, rings, radius, ground)
     # every candidate's single-link squared error over all fields, from one data pass:
     # Σ_p ‖A_l x̃ − X_p‖² = x̃ᵀ G_ll x̃ − 2 q_l + Σ_p ‖X_p‖²
     m0, xh, A = _homogeneous(vertices, R, t)
@@ -694,7 +402,7 @@ class Alternation:
         vertices, fields, faces, labels, R, t = self.args
         kw, rows, w_init = self.kw, self.rows, self.w_init
         L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
-        kw["cand"] = _candidates(vertices, faces, labels, L, kw.get("rings", 3), kw["radius"], kw.get("ground"))
+        kw["cand"] = vertex_candidates(vertices, faces, labels, L, kw.get("rings", 3), kw["radius"], kw.get("ground"))
         if rows is not None:
             # the decomposition on a vertex sample (:func:`vertex_sample`): candidates from the whole mesh
             vertices, fields, kw["cand"] = vertices[rows], fields[:, rows], kw["cand"][rows]
@@ -742,47 +450,6 @@ class Alternation:
         return (self.w, self.R, self.t, self.e, *self.info)
 
 
-#: vertices the relabelling's, the swap trials' and most of the refined skin's decompositions are
-#: solved on (:func:`vertex_sample`): a round's cost is about 3 ms plus 6 µs a vertex at 20 fields
-#: (CesiumMan), so below ~1,000 vertices a smaller sample saves little
-SAMPLE_VERTICES = 800
-#: every link keeps at least this many of its vertices in the sample (a finger segment's link)
-SAMPLE_PER_LINK = 32
-#: a sample above this share of the vertices is not used (the whole mesh is): on RobotExpressive
-#: (1,820 vertices, 36 links, a sample of 956) the sampled relabelling lost 3-4 of the 30 finger
-#: joints on fresh poses that the whole mesh finds, for a saving under 2x
-SAMPLE_SHARE = 0.5
-
-
-def vertex_sample(faces: np.ndarray, labels: np.ndarray, n_vertices: int, size: int | None = None,
-                  per_link: int | None = None, seed: int = 0, share: float | None = None):
-    """Sorted vertex ids (S,) to solve skin decompositions on, or None when the sample would not be
-    much smaller than the mesh (S > :data:`SAMPLE_SHARE` · N).
-
-    Every vertex with probability ``size / N``, plus the ``per_link`` vertices of lowest key of every
-    link (its triangles' corners), so that a short link keeps enough vertices to move on its own.
-    The keys are drawn from a fixed seed: the same scan and labels give the same sample. The link
-    motions of a decomposition are sums over vertices (:func:`update_motions`), so a sample that
-    covers every link estimates them at a fraction of the cost; the weights of the other vertices
-    then follow from one solve with those motions (:func:`full_skin`)."""
-    N = int(n_vertices)
-    size = SAMPLE_VERTICES if size is None else size
-    per_link = SAMPLE_PER_LINK if per_link is None else per_link
-    if N <= size:
-        return None
-    key = np.random.default_rng(seed).random(N)
-    pick = key < size / N
-    ok = labels >= 0
-    pairs = np.unique(np.repeat(labels[ok].astype(np.int64), 3) * N + faces[ok].reshape(-1))
-    pl, pv = pairs // N, pairs % N
-    order = np.lexsort((key[pv], pl))
-    pl, pv = pl[order], pv[order]
-    rank = np.arange(pl.size) - np.searchsorted(pl, pl, side="left")
-    pick[pv[rank < per_link]] = True
-    rows = np.flatnonzero(pick)
-    return rows if rows.size <= (SAMPLE_SHARE if share is None else share) * N else None
-
-
 def full_skin(vertices, fields, faces, labels, R, t, radius=SKIN_RADIUS, details=False, rows=None,
               w_rows=None, **kw):
     """The weights of every vertex for given link motions ``R (P, L, 3, 3)``, ``t (P, L, 3)``: one
@@ -790,7 +457,7 @@ def full_skin(vertices, fields, faces, labels, R, t, radius=SKIN_RADIUS, details
     (a decomposition on a :func:`vertex_sample`). Returns ``(weights (N, L), error)`` and, with
     ``details``, the details dict."""
     L = R.shape[1] + (1 if kw.get("ground") is not None else 0)
-    cand = _candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
+    cand = vertex_candidates(vertices, faces, labels, L, kw.get("rings", 3), radius, kw.get("ground"))
     w_init = None
     if rows is not None and w_rows is not None:
         w_init = np.zeros((vertices.shape[0], w_rows.shape[1]))
@@ -798,32 +465,3 @@ def full_skin(vertices, fields, faces, labels, R, t, radius=SKIN_RADIUS, details
     return _refine(vertices, fields, faces, labels, R, t, cand=cand, radius=radius, details=details,
                    w_init=w_init, **kw)
 
-
-#: fields the relabelling's decompositions use at most (:func:`field_sample`): a long capture's
-#: consecutive frames repeat each other, and a decomposition's cost is linear in the fields. Only
-#: the relabelling's labels leave it; the refined skin uses every field (on dembones_bone's 400
-#: frames, 48 sampled fields for its first rounds left 0.55 % error instead of 0.47 %)
-SAMPLE_FIELDS = 64
-
-
-def field_sample(fields: np.ndarray, size: int | None = None, rows: np.ndarray | None = None):
-    """Sorted field ids (K,) spread over the poses, or None when the scan has at most ``size`` fields.
-
-    Farthest-point sampling in displacement space (on the vertices ``rows``, default all): the field
-    that moves the object most, then repeatedly the field farthest from every field chosen, so that
-    the extreme poses that decide a link's motion and its joints are kept while near-repeats of them
-    (a long capture's consecutive frames) are not. ``fields (P, N, 3)``."""
-    size = SAMPLE_FIELDS if size is None else size
-    P = fields.shape[0]
-    if P <= size:
-        return None
-    D = (fields if rows is None else fields[:, rows]).reshape(P, -1)
-    sq = np.einsum("pi,pi->p", D, D)
-    pick = [int(np.argmax(sq))]
-    dist = np.full(P, np.inf)
-    for _ in range(size - 1):       # K steps of one (P,)-vector each, not a loop over data
-        d = D @ D[pick[-1]]
-        dist = np.minimum(dist, sq - 2 * d + sq[pick[-1]])
-        dist[pick] = -np.inf
-        pick.append(int(np.argmax(dist)))
-    return np.sort(np.array(pick))

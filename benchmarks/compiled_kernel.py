@@ -46,7 +46,7 @@ def _jit(fn):
 
 @_jit
 def _kkt(Q, q, P, m, K, rhs, z):
-    """skinning._kkt_solve for one row, by LU with partial pivoting into z (m+1,); False if singular."""
+    """qp._kkt_solve for one row, by LU with partial pivoting into z (m+1,); False if singular."""
     n = m + 1
     for a in range(m):
         pa = 1.0 if P[a] else 0.0
@@ -98,7 +98,7 @@ def _kkt(Q, q, P, m, K, rhs, z):
 
 @_jit
 def _settle(Q, q, P, w, m, K, rhs, z):
-    """skinning._active_set's settle for one row: the optimum on P, dropping weights that turn negative."""
+    """qp._active_set's settle for one row: the optimum on P, dropping weights that turn negative."""
     for _ in range(m):
         if not _kkt(Q, q, P, m, K, rhs, z):
             return          # singular (numpy takes the pseudo-inverse): the row keeps its iterate
@@ -132,7 +132,7 @@ def _settle(Q, q, P, w, m, K, rhs, z):
 
 @_jit
 def _active(Q, q, valid, max_rounds, w0, has_w0, w, P, m, K, rhs, z, g):
-    """skinning._active_set for one row (its start, warm start and tolerances): fills w, P; returns done."""
+    """qp._active_set for one row (its start, warm start and tolerances): fills w, P; returns done."""
     scale_d = 0.0
     scale_q = 0.0
     for a in range(m):
