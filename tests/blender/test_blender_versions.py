@@ -16,6 +16,8 @@ def mods(installed_addon):
     class M:
         compat = importlib.import_module(installed_addon + ".operators.compat")
         rig = importlib.import_module(installed_addon + ".operators.rig")
+        loads = importlib.import_module(installed_addon + ".operators.loads")
+        replay = importlib.import_module(installed_addon + ".operators.replay")
         ops = importlib.import_module(installed_addon + ".operators.ops")
         files = importlib.import_module(installed_addon + ".artdef_addon.files")
         samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
@@ -73,9 +75,9 @@ _STAGES = [
     ("rig", "_fill_vertex_group", ("rod", "greens_rod")),
     ("rig", "_make_armature", ("rod", "greens_rod")),
     ("compat", "new_action", ("rod", "greens_rod")),
-    ("rig", "_build_replay", ("rod",)),
-    ("rig", "_make_load_empties", ("greens_rod",)),
-    ("rig", "_build_load_sweep", ("greens_rod",)),
+    ("replay", "_build_replay", ("rod",)),
+    ("loads", "_make_load_empties", ("greens_rod",)),
+    ("loads", "_build_load_sweep", ("greens_rod",)),
     ("rig", "write_residual", ("rod", "greens_rod")),
 ]
 

@@ -1,0 +1,21 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""The names ArtDef gives to what it makes in a scene (Clear Rig and a re-fit find them by these)."""
+
+GROUP_FMT = "artdef_link_{:02d}"
+HELPER_FMT = GROUP_FMT + "_load"   # Green's scans: the load-driven helper bone of a link
+HELPER_COLLECTION = "ArtDef Load Helpers"
+LOAD_CONSTRAINT = "ArtDef Load"
+KEY_PREFIX = "artdef_field_"
+LOAD_FMT = "artdef_load_{}"
+MODIFIER_NAME = "ArtDef Armature"
+COLOR_ATTR = "artdef_links"
+RESIDUAL_ATTR = "artdef_residual"
+RESIDUAL_COLOR_ATTR = "artdef_residual_color"
+#: Prefix of the temporary names of the previous rig's pieces while a new rig is built
+#: (names starting with "." are hidden from most of Blender's lists).
+STASH_PREFIX = ".artdef_prev_"
+#: a Green's rig's posing version, stored on its armature (``RIG_VERSION_PROP``): 2 = first-order
+#: and bump residual keys (model.greens_keys); a Green's rig without it was built with the probe
+#: residual scaled linearly and is told to be refitted (:func:`.rig.stale_greens_rig`)
+RIG_VERSION = 2
+RIG_VERSION_PROP = "artdef_rig_version"
