@@ -2,7 +2,6 @@
 """ArtDef operators (public scripting API: ``bpy.ops.artdef.*``)."""
 
 import os
-import threading
 import time
 import traceback
 
@@ -12,20 +11,16 @@ from bpy.props import EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ..artdef_addon import api as _api
-from ..artdef_addon import fit as _fit
+from ..artdef_addon import fit as _fit  # noqa: F401  (kept importable from here)
 from ..artdef_addon import scan as _scan
 from ..artdef_addon.options import FitOptions, OptionsError
-from . import compat, fitquality, io, menus, rig
-from .props import SETTING_NAMES, FitSettings, enum_id, options_from, store_options
+from . import compat, io, menus, rig
+from .apply import apply_result, store_summary  # noqa: F401
+from .jobs import _STAGES, _FitJob, _PreviewJob, _preview_job, model_of, stage_text  # noqa: F401
+from .modal import _WorkerModal
+from .props import SETTING_NAMES, FitSettings, options_from
+from .state import LAST_RESULTS, PROGRESS_HOOKS, _forget, last_result  # noqa: F401
 
-#: Extra cancel checks consulted by every fit's progress callback:
-#: ``hook(stage, fraction) -> bool`` (True cancels).  For scripts and tests;
-#: the interactive path cancels with Esc.
-PROGRESS_HOOKS = []
-
-#: Last FitResult per mesh object name (the model behind the rig; for
-#: scripting and tests — not saved in the .blend).
-LAST_RESULTS = {}
 
 def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0, links=None,
                 auto=False, max_links=None):
@@ -43,10 +38,6 @@ def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0,
 def cached_segmentation(obj):
     """The core's kept segmentation of ``obj``'s scan for its settings, or None (tests, scripts)."""
     return _api.cached(io.read_scan(obj).scan, options_from(obj.artdef))
-
-
-def last_result(obj):
-    return LAST_RESULTS.get(obj.name)
 
 
 def _active_mesh(context):
@@ -204,297 +195,6 @@ class ARTDEF_OT_fields_from_shape_keys(bpy.types.Operator):
 # fit
 # --------------------------------------------------------------------------
 
-#: Status-bar wording of the progress stages the core reports; ``True``: the
-#: stage reports fractions (show a percentage), ``False``: one report at its start.
-_STAGES = {
-    "start": ("starting", False),
-    "features": ("motions per triangle and field", True),
-    "distances": ("pairwise distances", True),
-    "cluster": ("clustering", True),
-    "merge": ("merging pieces into links", True),
-    "links": ("choosing the link count", True),
-    "segment": ("segmenting into links", False),
-    "motions": ("link motions", False),
-    "relabel": ("relabelling faces by their skin", False),
-    "skin": ("skin weights", False),
-    "split": ("splitting links that hold two bones", False),
-    "joints": ("joints and tree", False),
-    "bones": ("bone frames", False),
-    "pose": ("pose parameters", False),
-    "residuals": ("residual and errors", False),
-    "pseudo": ("one model per load point", True),
-    "done": ("finishing", False),
-}
-
-
-def stage_text(stage, fraction):
-    """A stage report as the status bar shows it: ``merge column 2`` -> readable words."""
-    label, fractional = _STAGES.get(stage, (None, True))
-    if label is None and stage.startswith("merge column "):
-        label = f"merging pieces into links (load point {stage[len('merge column '):]})"
-    if label is None:
-        label = stage
-    if not fractional:
-        return label
-    return f"{label} {100 * min(max(fraction, 0.0), 1.0):.0f}%"
-
-
-class _FitJob:
-    """One fit: the core's public :func:`artdef_addon.fit` runs here (possibly in a worker
-    thread); no bpy access."""
-
-    def __init__(self, scan, links, options=None, load_index=0):
-        self.scan, self.links = scan, links            # links: int or "auto"
-        self.options = options if options is not None else FitOptions()
-        self.load_index = load_index
-        self.link_reason = ""
-        self.model = None            # the result whose rig is built (pseudo: one load point's)
-        self.vertex_residual = None  # (N,) articulation residual of ``model``
-        self.stage, self.fraction = "start", 0.0
-        self.links_fraction = None   # while Auto Links tries link counts: how far it is
-        self.cancel = threading.Event()
-        self.result = None
-        self.error = None
-        self.seconds = 0.0
-        self.thread = None
-
-    def progress(self, stage, fraction):
-        self.stage, self.fraction = stage, float(fraction)
-        if stage == "links":
-            # the search reports 1 when it has chosen; a fit of that count may follow
-            self.links_fraction = float(fraction) if fraction < 1.0 else None
-        if self.cancel.is_set():
-            return True
-        return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))
-
-    def run(self, on_progress=None):
-        def callback(stage, fraction):
-            stop = self.progress(stage, fraction)
-            if on_progress is not None:
-                on_progress(stage, fraction)
-            return stop
-        t0 = time.perf_counter()
-        try:
-            self.result = _api.fit(self.scan, self.links, self.options, callback)
-            self.links_fraction = None
-            self.links, self.link_reason = self.result.n_links, self.result.link_reason
-            self.model, self.vertex_residual = model_of(self.result, self.scan, self.load_index)
-        except BaseException as err:  # reported on the main thread
-            self.error = err
-        self.seconds = time.perf_counter() - t0
-
-    @property
-    def notes(self):
-        """The core's notes on this fit (e.g. that and why the reduced method ran)."""
-        return [str(n) for n in (getattr(self.result, "notes", None) or [])]
-
-    @property
-    def reduced(self):
-        return bool(getattr(self.result, "reduced", False))
-
-    def status_text(self):
-        """What the status bar shows while the job runs."""
-        text = stage_text(self.stage, self.fraction)
-        if self.links_fraction is not None and self.stage != "links":
-            # Auto Links segments every count up to Max Links: say where it is overall
-            text = f"{stage_text('links', self.links_fraction)} ({text})"
-        return text
-
-    def start_thread(self):
-        self.thread = threading.Thread(target=self.run, name="artdef-fit", daemon=True)
-        self.thread.start()
-
-
-def model_of(result, scan, load_index=0):
-    """``(model, vertex residual (N,))``: the result whose rig is built — the result, or in pseudo
-    mode load point ``load_index``'s model (None if there is none) — and its per-vertex
-    articulation residual. Numpy only (runs in the fit's thread)."""
-    model, fields = result, None
-    if result.mode == "pseudo":
-        pseudo = result.pseudo or []
-        if load_index >= len(pseudo):
-            return None, None
-        model = pseudo[load_index]
-        fields = result.groups[load_index] if result.groups else [3 * load_index + d for d in range(3)]
-    return model, fitquality.vertex_residual(model, scan, fields)
-
-
-def apply_result(context, obj, result, scan, tri_polygons, *, load_index=0, frames_per_field=10,
-                 auto_links=None, seconds=0.0, model=None, vertex_residual=None):
-    """Build the rig of ``result`` (a fit of ``scan``) on mesh ``obj`` and record it: vertex
-    groups, armature, residual shape keys, load controls or replay, residual colours, the
-    object's settings and summary. The one way a rig is made from a fit — the Fit operator after
-    its job and the command line (``operators/headless.py``) both call it. Main thread only;
-    on failure what the build made is removed, the previous rig (or the link colours of Preview
-    Links) is put back as it was, and the error raised."""
-    if model is None:
-        model, vertex_residual = model_of(result, scan, load_index)
-    if model is None:
-        raise ValueError("The fit returned no pseudo-articulation for that load point")
-    pseudo = result.mode == "pseudo"
-    before = rig.datablock_snapshot()
-    # the previous rig (or Preview Links' colours) is set aside, not removed, until the new rig
-    # is built: a build that fails puts it back as it was
-    stash = rig.stash_rig(obj, context.scene)
-    try:
-        rig.build_rig(context, obj, model, tri_polygons, scan.kind, [load_index] if pseudo else None,
-                      frames_per_field)
-        scale = float(vertex_residual.max()) if len(vertex_residual) else 0.0
-        rig.write_residual(obj.data, vertex_residual, scale)
-    except Exception:
-        try:
-            rig.clear_rig(obj, context.scene)
-        finally:
-            try:
-                # whatever the build made and clear_rig did not know of yet
-                # (an action, armature or empty made just before the failure)
-                rig.remove_new_datablocks(before)
-            finally:
-                rig.restore_rig(stash)
-        raise
-    rig.drop_stash(stash)
-    LAST_RESULTS[obj.name] = model
-    store_summary(obj, result, model, scan, vertex_residual, load_index=load_index,
-                  frames_per_field=frames_per_field, seconds=seconds, auto_links=auto_links)
-    return model
-
-
-def store_summary(obj, result, model, scan, vertex_residual, *, load_index=0, frames_per_field=10,
-                  seconds=0.0, auto_links=None):
-    """The object's record of the fit (panel) and the settings that made it."""
-    st = obj.artdef
-    o = result.options
-    pseudo = result.mode == "pseudo"
-    st.has_fit = True
-    st.fit_links = int(model.n_links)
-    st.fit_mode = enum_id(result.mode)
-    st.fit_motion = enum_id(result.motion)
-    st.fit_kind = scan.kind
-    st.fit_load_index = load_index if pseudo else -1
-    st.fit_p_max = result.p_max or 0.0
-    st.fit_rms_articulation = float(model.rms_articulation)
-    st.fit_rms_total = float(model.rms_total)
-    st.fit_seconds = seconds
-    timings = getattr(model, "timings", None) or getattr(result, "timings", None) or {}
-    st.fit_timings = ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
-    e = float(model.articulation_error_percent)
-    st.fit_articulation_percent = e if e == e else -1.0   # −1: undefined (degenerate frames), shown "n/a"
-    # issue 19's figures (NaN/absent on a pseudo model or an old result: shown as unknown)
-    st.fit_e_rms = float(getattr(model, "e_rms", float("nan")))
-    st.fit_rigid_percent = float(getattr(model, "rigid_error_percent", float("nan")))
-    st.fit_linear_percent = float(getattr(model, "linear_error_percent", float("nan")))
-    st.fit_linear_rank = int(getattr(model, "linear_rank", 0))
-    st.fit_articulated = bool(getattr(model, "articulated", True))
-    res = vertex_residual
-    st.fit_residual_max = float(res.max()) if len(res) else 0.0
-    st.fit_residual_mean = float(res.mean()) if len(res) else 0.0
-    st.fit_diagonal = float(np.linalg.norm(np.ptp(scan.vertices, axis=0)))
-    st.fit_link_stats.clear()
-    for item in fitquality.link_stats(model):
-        rec = st.fit_link_stats.add()
-        rec.name = rig.GROUP_FMT.format(item["link"])
-        for key, value in item.items():
-            setattr(rec, key, value)
-    if st.set_frame_range:
-        start, end = st.replay_frame_range
-        if scan.kind == "greens":
-            st.fit_replay = (f"load sweep: load k along axis d at the probe load at frame "
-                             f"(2(3k+d)+1)x{frames_per_field}, scene frames set to {start}-{end}")
-        else:
-            st.fit_replay = (f"replay: field p at frame (p+1)x{frames_per_field}, "
-                             f"scene frames set to {start}-{end}")
-    else:
-        st.fit_replay = ""
-    st.fit_summary = str(model.summary())
-    if st.fit_replay:
-        st.fit_summary += ("\n" if st.fit_summary else "") + st.fit_replay
-    st.fit_link_reason = result.link_reason
-    obj["artdef_link_errors"] = [float(e) for e in (result.link_errors or [])]  # panel's curve
-    st.fit_skin = str(getattr(model, "skin", "") or "")
-    st.fit_notes = "\n".join(str(n) for n in (result.notes or []))
-    st.fit_reduced = bool(result.reduced)
-    # Remember the settings that made this rig (Links: the count used, also when chosen)
-    if o is not None:
-        store_options(st, o)
-    st.links = int(model.n_links)
-    st.load_index = load_index
-    st.frames_per_field = frames_per_field
-    if auto_links is not None:
-        st.auto_links = auto_links
-
-
-class _WorkerModal:
-    """The interactive path shared by Fit and Preview Links: the job runs in a worker thread,
-    a modal timer shows its stage and progress, Esc cancels, the view can still be navigated.
-
-    The operator sets ``_what`` (status-bar word) and implements ``_finish(context, job)``.
-    """
-    _what = "job"
-    _job = None
-    _timer = None
-
-    def _start_modal(self, context, job):
-        self._job = job
-        wm = context.window_manager
-        wm.progress_begin(0, 1000)
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.modal_handler_add(self)
-        job.start_thread()
-        self._status(context, job.status_text())
-        return {'RUNNING_MODAL'}
-
-    def _status(self, context, text):
-        if context.workspace is not None:
-            context.workspace.status_text_set(
-                None if text is None else f"ArtDef {self._what}: {text} — Esc to cancel")
-
-    def _end(self, context):
-        wm = context.window_manager
-        if self._timer is not None:
-            wm.event_timer_remove(self._timer)
-            self._timer = None
-        wm.progress_end()
-        self._status(context, None)
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == 'ESC':
-            job.cancel.set()
-            self._end(context)
-            self.report({'WARNING'}, f"{self._what.capitalize()} cancelled; the scene is unchanged")
-            return {'CANCELLED'}
-        if event.type == 'TIMER':
-            context.window_manager.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0)))
-            self._status(context, job.status_text())
-            if not job.thread.is_alive():
-                self._end(context)
-                return self._finish(context, job)
-            return {'RUNNING_MODAL'}
-        if event.type in {'MIDDLEMOUSE', 'WHEELUPMOUSE', 'WHEELDOWNMOUSE', 'TRACKPADPAN',
-                          'TRACKPADZOOM', 'MOUSEMOVE', 'INBETWEEN_MOUSEMOVE'}:
-            return {'PASS_THROUGH'}  # let the user navigate the view while it runs
-        return {'RUNNING_MODAL'}  # block editing: the job works on a snapshot
-
-    def _failed(self, job):
-        """Report a cancelled or failed job (True), or nothing (False).  Main thread only."""
-        err = job.error
-        what = self._what.capitalize()
-        if err is None:
-            return False
-        if isinstance(err, _fit.FitCancelled):
-            self.report({'WARNING'}, f"{what} cancelled; the scene is unchanged")
-        elif isinstance(err, (_scan.ScanError, ValueError)):
-            self.report({'ERROR'}, f"{what} failed: {err}")
-        else:
-            traceback.print_exception(type(err), err, err.__traceback__)
-            self.report({'ERROR'}, f"{what} failed ({type(err).__name__}): {err}")
-        return True
-
-    def cancel(self, context):  # window closed / file loaded while running
-        if self._job is not None:
-            self._job.cancel.set()
-        self._end(context)
-
 
 #: Blender's last scene frame (MAXFRAME)
 MAX_FRAME = 1048574
@@ -625,49 +325,6 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
 # --------------------------------------------------------------------------
 # preview links
 # --------------------------------------------------------------------------
-
-class _PreviewJob:
-    """Segment one scan for Preview Links (possibly in a worker thread); no bpy access.
-
-    The core's :func:`artdef_addon.segment` keeps the segmentation, which the next preview or fit
-    of the same scan and method settings reuses; the progress callback reports the stage and
-    cancels on Esc, like the fit's.
-    """
-
-    def __init__(self, obj_name, stored, options, links):
-        self.obj_name, self.stored, self.options = obj_name, stored, options
-        self.links = links
-        self.cached = _api.cached(stored.scan, options) is not None
-        self.labels = None
-        self.error = None
-        self.stage, self.fraction = "start", 0.0
-        self.cancel = threading.Event()
-        self.thread = None
-
-    def progress(self, stage, fraction):
-        self.stage, self.fraction = stage, float(fraction)
-        if self.cancel.is_set():
-            return True
-        return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))
-
-    def run(self):
-        try:
-            self.labels, _, _ = _api.segment(self.stored.scan, self.links, self.options, self.progress)
-        except BaseException as err:  # reported on the main thread
-            self.error = err
-
-    def status_text(self):
-        return stage_text(self.stage, self.fraction)
-
-    def start_thread(self):
-        self.thread = threading.Thread(target=self.run, name="artdef-preview", daemon=True)
-        self.thread.start()
-
-
-def _preview_job(obj, links):
-    """A :class:`_PreviewJob` for ``obj``'s scan and its Reduced Method / Memory Budget settings."""
-    return _PreviewJob(obj.name, io.read_scan(obj), options_from(obj.artdef), links)
-
 
 class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
     """Colour the faces of the active scan by link for a given link count (colour attribute 'artdef_links'); the clustering is cached, so changing the count is fast"""
@@ -817,12 +474,5 @@ classes = (
 )
 if ARTDEF_FH_scan is not None:
     classes += (ARTDEF_FH_scan,)
-
-
-def _forget():
-    """What the add-on keeps between fits: the core's cached segmenters and the last results."""
-    _api.clear_cache()
-    LAST_RESULTS.clear()
-
 
 register, unregister = menus.registration(classes, "TOPBAR_MT_file_import", menu_import, after_unregister=_forget)
