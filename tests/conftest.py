@@ -12,6 +12,7 @@ numerical core (``artdef_addon``) run without paying for it.
 """
 
 import atexit
+import importlib
 import os
 import shutil
 import subprocess
@@ -149,6 +150,34 @@ def clean_scene(installed_addon):
         _enable_addon(installed_addon)
     assert _addon_enabled(installed_addon)
     yield bpy.context.scene
+
+
+@pytest.fixture(scope="session")
+def pkg(installed_addon):
+    """Modules of the installed extension (the operator tests' references)."""
+    class P:
+        scan = importlib.import_module(installed_addon + ".artdef_addon.scan")
+        files = importlib.import_module(installed_addon + ".artdef_addon.files")
+        samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
+        model = importlib.import_module(installed_addon + ".artdef_addon.model")
+        ops = importlib.import_module(installed_addon + ".operators.ops")
+        api = importlib.import_module(installed_addon + ".artdef_addon.api")
+        cost = importlib.import_module(installed_addon + ".artdef_addon.cost")
+        io = importlib.import_module(installed_addon + ".operators.io")
+        rig = importlib.import_module(installed_addon + ".operators.rig")
+        drivers = importlib.import_module(installed_addon + ".artdef_addon.drivers")
+    return P
+
+
+@pytest.fixture(scope="session")
+def sample_files(pkg, tmp_path_factory):
+    d = tmp_path_factory.mktemp("scans")
+    out = {}
+    for name in ("rod", "branching", "greens_rod"):
+        path = d / f"{name}.npz"
+        pkg.files.write_scan(path, pkg.samples.make(name))
+        out[name] = str(path)
+    return out
 
 
 _TESTS = Path(__file__).resolve().parent
