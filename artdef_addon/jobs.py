@@ -52,12 +52,12 @@ def _links(params):
 def fit(arrays, params, report):
     """The child's half of :meth:`Session.fit`: :func:`api.fit`; the result's arrays."""
     import dataclasses
-    from . import api, fit as _fit
+    from . import api, result as _result
     result = api.fit(_scan(arrays, params), _links(params), _options(params), report.progress)
     extra = {"link_errors": [float(e) for e in result.link_errors], "reduced": bool(result.reduced),
              "groups": result.groups,
              "estimate": None if result.estimate is None else dataclasses.asdict(result.estimate)}
-    return extra, _fit.result_arrays(result)
+    return extra, _result.result_arrays(result)
 
 
 def segment(arrays, params, report):
@@ -79,8 +79,8 @@ def cached(arrays, params, report):
 
 def result_from(values: dict, arrays: dict, options: FitOptions):
     """The :class:`fit.FitResult` of a ``fit`` call's reply (``options``: as the call was asked)."""
-    from . import cost, fit as _fit
-    result = _fit._result_from_arrays(arrays)
+    from . import cost, result as _result
+    result = _result.result_from_arrays(arrays)
     result.options = options                  # as asked, as :func:`api.fit` keeps it
     result.link_errors, result.reduced = values["link_errors"], values["reduced"]
     result.groups = values["groups"]
@@ -179,10 +179,10 @@ class Session:
 
     def outcome_or_cancelled(self, call):
         """:meth:`outcome`, with a cancelled call raised as :class:`fit.FitCancelled`."""
-        from . import fit as _fit
+        from .result import FitCancelled
         try:
             return self.outcome(call)
         except procs.WorkerError as err:
             if err.kind == "cancelled":
-                raise _fit.FitCancelled("cancelled") from None
+                raise FitCancelled("cancelled") from None
             raise

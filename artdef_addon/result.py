@@ -159,13 +159,13 @@ def load_result(path) -> FitResult:
     from .files import BadFile, read_result_arrays
     d = read_result_arrays(path)
     try:
-        return _result_from_arrays(d)
+        return result_from_arrays(d)
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise BadFile(f"{os.fspath(path)}: damaged result ({line})") from None
 
 
-def _result_from_arrays(d: dict) -> FitResult:
+def result_from_arrays(d: dict) -> FitResult:
     """A :class:`FitResult` from the arrays of a checked result file."""
 
     def build(prefix=""):

@@ -13,7 +13,7 @@ bpy = pytest.importorskip("bpy")
 bmesh = pytest.importorskip("bmesh")
 
 from test_headless_gltf import read_glb  # noqa: E402
-from test_handoff import KEYED, MAX_TOL, RMS_TOL, _import, _ok, _run, _skinned, build_character, compare, \
+from handoffhelpers import KEYED, MAX_TOL, RMS_TOL, _import, _ok, _run, _skinned, build_character, compare, \
     world_positions  # noqa: E402  (the character and its read-back)
 
 
