@@ -1,5 +1,6 @@
 """The rig's driver expressions as text (``artdef_addon.drivers``), checked without Blender: each one
-evaluates, with the load empties' locations as its variables, to the core's model of the loads."""
+evaluates, with the load empties' locations as its variables, to the core's model of the loads
+(:mod:`artdef_addon.model`)."""
 import math
 from types import SimpleNamespace
 
@@ -43,12 +44,19 @@ def test_a_short_sum_is_one_expression_and_no_terms_is_zero():
 
 
 @pytest.mark.parametrize("p_max", [None, 1.5, 3.0, 20.0])
-def test_shape_value_expression_is_the_models_hardening_map(p_max):
+def test_shape_key_expressions_are_the_models_key_values(p_max):
+    """The first-order keys' expressions are the hardening map over its slope at zero, the bump
+    keys' the probe-exactness weight: :func:`model.greens_key_values`, for loads below, at and
+    beyond the probe load and for no load."""
     rng = np.random.default_rng(7)
     M, probe = 3, 0.37
     fake = SimpleNamespace(probe_load=probe, p_max=p_max)
-    for loads in (rng.normal(size=(M, 3)), 5.0 * rng.normal(size=(M, 3)), np.zeros((M, 3))):
-        want = model.shape_values_for_loads(fake, loads)
-        got = [_eval(drivers.shape_value_expression(k, d, probe, p_max), loads)
-               for k in range(M) for d in range(3)]
-        np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-12)
+    axis = np.zeros((M, 3))
+    axis[:, 0] = probe                                  # at the probe load: every bump weight is 1
+    for loads in (0.1 * rng.normal(size=(M, 3)), rng.normal(size=(M, 3)), 5.0 * rng.normal(size=(M, 3)),
+                  axis, np.zeros((M, 3))):
+        want = model.greens_key_values(fake, loads)
+        first = [_eval(drivers.shape_value_expression(k, d, probe, p_max), loads) for k in range(M) for d in range(3)]
+        bump = [_eval(drivers.bump_value_expression(k, d, probe), loads) for k in range(M) for d in range(3)]
+        np.testing.assert_allclose(first + bump, want, rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(model.greens_key_values(fake, axis)[3 * M::3], 1.0)
