@@ -10,7 +10,7 @@ from .pipeline import fit, fit_until  # noqa: F401
 from .result import (FitCancelled, FitResult, load_result, report, result_arrays, result_from_arrays,  # noqa: F401
                      save_result)
 from .segmenter import SEGMENT_FIELDS, STRATEGIES, Segmenter, select_fields  # noqa: F401
-from .stages import (EXACT_JOINT, NEAR_BLOCK, RESIDUAL_BLOCK_BYTES, SKIN_SAMPLE, STAGES, FitState,  # noqa: F401
+from .stages import (EXACT_JOINT, NEAR_BLOCK, RESIDUAL_BLOCK_BYTES, STAGES, FitState,  # noqa: F401
                      joint_of, link_motions, new_state, relabelled, run_stages, stage_bones, stage_joints,
                      stage_motions, stage_pose, stage_relabel, stage_residuals, stage_segment, stage_skin,
                      stage_split, to_result)

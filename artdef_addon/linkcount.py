@@ -86,7 +86,7 @@ class LinkChoice:
     tree_links: int = 0      # the re-cut tree's pick, before the whole fits
     upward_links: int = 0    # after the whole fits upward, before links that are not bones are dropped
     result: object = None    # the whole fit at ``links`` (fit.fit's defaults; a count climbed to from the
-    #                          links grown below it: from those, CLIMB_FROM_GROWN), when one was made
+    #                          links grown below it: from those, see start_fit), when one was made
     timings: dict = dataclasses.field(default_factory=dict)   # seconds: curve, upward, drop
     whole_errors: dict = dataclasses.field(default_factory=dict)   # {count: whole-fit error %} upward
     grown_errors: dict = dataclasses.field(default_factory=dict)   # {count: grown error %} (grow_link)
@@ -100,7 +100,7 @@ class LinkChoice:
     def reusable(self, mode: str = "global", motion: str = "robust", skin: str | None = "auto"):
         """The chooser's own fit at the chosen count if it is the kind of fit ``fit.fit(scan, links,
         mode, motion, skin=skin)`` would return (same segmenter; a count climbed to is fitted from
-        the links grown below it, :data:`CLIMB_FROM_GROWN`), else None — so callers need not fit it
+        the links grown below it), else None — so callers need not fit it
         again."""
         if self.result is None or mode != "global" or motion != "robust" or skin not in (None, "auto", "refined"):
             return None
@@ -270,13 +270,6 @@ GROWN_MARGIN = 1.25
 #: bone still shows at the floor as a drop of the grown links to below half the bar (Robot's 36th
 #: link: whole fits 0.075 % → 0.019 %, the grown 0.22 x the bar from 35)
 FLOOR_MARGIN = 0.5
-#: the upward search stops at k once k's whole fit has links that are not bones (:func:`spurious_links`):
-#: the count is past the bones, and the drop of non-bones that follows the upward pass would take the
-#: counts above it down again, so neither a second chain of grown links on k nor the whole fits of a close
-#: call above it are made. dembones_bone (the tree's pick 14, dropped to 10): its search 57 -> 19 s;
-#: RiggedFigure's own poses (20, dropped to 19): 15.0 -> 4.1-4.8 s; the same counts on all 15 rows of
-#: ``benchmarks/results/links_auto.md`` and on CesiumMan's fresh seeds 1-12
-STOP_ON_NON_BONES = True
 #: whole-fit error (percent) at which nothing is left to explain: the search stops, as
 #: :func:`_whole_fits_upward` does (a floor of 0.01 % would spare the rigid sets their window's
 #: whole fits, but is not the whole-fit rule)
@@ -499,8 +492,11 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     - the chain falls below ``GROWN_CONTINUE`` × the bar: continue to k+1 without fitting it (its
       error, until it is fitted, the chain's);
     - otherwise k gets its whole fit first (when it has none yet, the chain is grown again on it);
-      then, when that fit already has links that are not bones (:func:`spurious_links`,
-      ``STOP_ON_NON_BONES``), stop at k: the counts above would be taken down again by the drop;
+      then, when that fit already has links that are not bones (:func:`spurious_links`), stop at k:
+      the count is past the bones and the drop of non-bones that follows would take the counts above
+      it down again, so neither a second chain on k nor the whole fits of a close call above it are
+      made (dembones_bone's search 57 -> 19 s, RiggedFigure's 15.0 -> 4.1-4.8 s, the same counts on
+      every row of ``benchmarks/results/links_auto.md``);
       when the chain stays above ``GROWN_MARGIN`` × the bar, stop at k too;
     - otherwise whole fits decide, k+1 first, then the others in the order of their grown errors,
       until one is below the bar (continue) or none is (stop), as :func:`_whole_fits_upward`.
@@ -539,10 +535,14 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     def start_fit(j):
         """The whole fit at j run up to its split stage (:func:`partial_fit`): the chain's base, and
         the error of that skin as the count's until the fit is finished. A count the chain passed
-        on (grown continue) starts from the chain's links at j (``CLIMB_FROM_GROWN``)."""
+        on (grown continue) starts from the chain's links at j (:func:`partial_fit`'s ``start``: the
+        grown link in place) instead of a new cut of the tree, whose swaps would look for the missing
+        bone again (CesiumMan's seed 9: 1.6 s a climbed count against 2.6-3.4 s, the same counts and
+        rigs as good on every row of ``benchmarks/results/links_auto.md``). Not for the whole fits that
+        decide close calls: from a chain they climb past the truth (the Fox to 23 and 24)."""
         search.plan(PARTIAL_SHARE)
         work["partial_fits"] = work.get("partial_fits", 0) + 1
-        grown_state = chain.get(j) if CLIMB_FROM_GROWN else None
+        grown_state = chain.get(j)
         if grown_state is not None:
             work["climbed_fits"] = work.get("climbed_fits", 0) + 1
         st, secs, e = partial_fit(seg, j, search.fit_callback(PARTIAL_SHARE),
@@ -583,9 +583,9 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     verdicts: dict[int, bool] = {}      # count -> its whole fit has links that are not bones
 
     def past_bones(j):
-        """Whether j's whole fit has links that are not bones (``STOP_ON_NON_BONES``); asked once a count."""
+        """Whether j's whole fit has links that are not bones; asked once a count."""
         if j not in verdicts:
-            verdicts[j] = STOP_ON_NON_BONES and bool(np.any(spurious_links(x0, faces, fits[j])))
+            verdicts[j] = bool(np.any(spurious_links(x0, faces, fits[j])))
         return verdicts[j]
 
     start_fit(start)
@@ -634,15 +634,6 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
     return k, errors, grown, decisions
 
 
-#: a count the upward search passed on to on grown links is fitted from the chain's links there
-#: (:func:`partial_fit`'s ``start``: the grown link in place) instead of a new cut of the tree, whose
-#: swaps would look for the missing bone again. CesiumMan's fresh poses of seed 9 (16 -> 19 links):
-#: 1.6 s a climbed count against 2.6-3.4 s, the search 14.5 -> 11.2 s; the counts chosen the same on
-#: all 15 rows of ``benchmarks/results/links_auto.md`` and on 13 CesiumMan pose sets, the rigs handed
-#: back as good as the fixed-count fits (KG 0.019-0.029 % against 0.019-0.031 %, the same joints).
-#: Not for the whole fits that decide close calls: from a chain they climb past the truth (the Fox to 23
-#: and 24, RobotExpressive's fresh poses to 37 of 36; ``benchmarks/results/links_auto.md``)
-CLIMB_FROM_GROWN = True
 #: the share of a whole fit's time up to its split stage (CesiumMan: 0.6-0.7), for the progress
 PARTIAL_SHARE = 0.65
 

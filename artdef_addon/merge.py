@@ -356,15 +356,6 @@ def link_medoids(features: list[FieldFeatures], weights: np.ndarray, labels: np.
     return out
 
 
-#: relabel every face by its dominant skin weight after the link motions are known (see below)
-DOMINANT_RELABEL = True
-#: tracked scans: link swaps (:mod:`swaps`) inside the decomposition that decides the dominant labels
-SWAP_LINKS = True
-
-
-#: decompositions of the relabelling on a vertex sample (:func:`skinning.vertex_sample`)
-SAMPLE = True
-
 #: decompositions re-run on the argmax labels at most (see :func:`dominant_labels`)
 RELABEL_ROUNDS = 5
 #: rounds of each of those decompositions: each goes on from the last one's motions and weights, so
@@ -404,9 +395,9 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     blended can lose its link to its neighbours. Here the skin is decomposed from the links' own
     motions (:func:`skinning.alternate`: per-vertex convex weights over the nearby links and the
     link motions, alternated as in SSDR), and each face goes to the link with the largest summed
-    weight over its three vertices — the usual definition of a face's bone in rigged data. With
-    ``SWAP_LINKS`` the decomposition first moves links that explain little to where the skin
-    fits worst (:func:`swaps.swap_links`), so a sliver link at a seam can become a short bone
+    weight over its three vertices — the usual definition of a face's bone in rigged data. The
+    decomposition (on a vertex sample, :func:`skinning.vertex_sample`) first moves links that
+    explain little to where the skin fits worst (:func:`swaps.swap_links`), so a sliver link at a seam can become a short bone
     (scans of up to ``swaps.SWAP_BUDGET`` vertex-fields). Moving the seams changes which links
     each vertex may blend, so the decomposition is run again on the new labels, from the motions
     it found, and the faces relabelled, while that lowers its error (at most ``RELABEL_ROUNDS``
@@ -419,7 +410,7 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
     from .skinning import alternate_scored, full_skin, vertex_sample
     from .swaps import TRIAL_ROUNDS, swap_links, within_budget
     k = R.shape[1]
-    rows = vertex_sample(faces, labels, x0.shape[0]) if SAMPLE else None
+    rows = vertex_sample(faces, labels, x0.shape[0])
 
     def decompose(labels, R, t, rounds=TRIAL_ROUNDS, **kw):
         w, R, t, e = alternate_scored(x0, fields, faces, labels, R, t, iterations=rounds, rows=rows, **kw)
@@ -428,11 +419,11 @@ def dominant_labels(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, label
         return w, R, t, e
 
     # a rough skin is enough for the argmax: fewer rounds than the final refined skin
-    if SWAP_LINKS and within_budget(x0.shape[0], fields.shape[0]):
+    if within_budget(x0.shape[0], fields.shape[0]):
         w, R, t, labels, swaps, e, rows = swap_links(x0, fields, faces, labels, R, t, units=units, error=True,
                                                      rows=rows)
     else:
-        swaps = None if SWAP_LINKS and k > 2 else 0   # None: skipped, the scan is above the budget
+        swaps = None if k > 2 else 0   # None: skipped, the scan is above the budget
         w, R, t, e = decompose(labels, R, t)
     new = dominant_faces(w, faces, labels, units, k)
     # the argmax moves seams, which changes the links' candidate reach: decompose again on the

@@ -25,8 +25,6 @@ from .scan import Scan
 from .segmenter import Segmenter, select_fields
 from .skinning import alternate, blend_weights, field_sample, vertex_sample
 
-#: the refined skin's decomposition on a vertex sample, then polished on every vertex
-SKIN_SAMPLE = True
 
 #: a joint whose robust motions agree to this fraction of the bounding-box diagonal is exact
 #: (round-off, also of single-precision input: Blender meshes hold float32, about 1e-7 of the
@@ -170,7 +168,7 @@ def stage_relabel(st: FitState) -> None:
     Green's scans keep the paper's segmentation."""
     scan, seg, L, P = st.scan, st.seg, st.n_links, len(st.field_idx)
     st.swaps = 0
-    if not (_merge.DOMINANT_RELABEL and scan.kind != "greens" and L > 1 and P > 0):
+    if not (scan.kind != "greens" and L > 1 and P > 0):
         return
     # only the labels leave this stage: its decompositions may run on a sample of the fields
     pick = _trial_fields(st)
@@ -182,10 +180,10 @@ def stage_relabel(st: FitState) -> None:
 
 def _trial_fields(st: FitState):
     """The fields the relabelling's and the split trials' decompositions use: a spread of at most
-    ``skinning.SAMPLE_FIELDS`` of them (:func:`skinning.field_sample`, with ``merge.SAMPLE``) as an
+    ``skinning.SAMPLE_FIELDS`` of them (:func:`skinning.field_sample`) as an
     index array, or ``slice(None)`` for every field; chosen once per fit."""
     if st.trial_fields is None:
-        fsel = field_sample(st.fields) if _merge.SAMPLE else None
+        fsel = field_sample(st.fields)
         st.trial_fields = slice(None) if fsel is None else fsel
     return st.trial_fields
 
@@ -210,7 +208,7 @@ def _refined_skin(st: FitState, R: np.ndarray, t: np.ndarray, w_init: np.ndarray
     """The refined skin from link motions ``R``, ``t`` (every field): its decomposition on the vertex
     sample, polished on every vertex (:func:`skinning.alternate`); ``weights``, ``Rs``, ``ts``."""
     x0, faces = st.scan.vertices, st.scan.faces
-    rows = vertex_sample(faces, st.labels, x0.shape[0]) if SKIN_SAMPLE else None
+    rows = vertex_sample(faces, st.labels, x0.shape[0])
     st.weights, st.Rs, st.ts = alternate(x0, st.fields, faces, st.labels, R, t, w_init=w_init, rows=rows)
 
 
@@ -255,7 +253,7 @@ def _dominant_skin_labels(st: FitState) -> None:
     loses a finger joint). The skin and its motions stay as they are
     (the decomposition does not depend on the labels, only its candidate links do); the links'
     robust motions follow the new labels."""
-    if not (st.skin == "refined" and _merge.DOMINANT_RELABEL and st.scan.kind != "greens" and st.n_links > 1
+    if not (st.skin == "refined" and st.scan.kind != "greens" and st.n_links > 1
             and st.fields.shape[0] > 0):
         return
     new = _merge.dominant_faces(st.weights, st.scan.faces, st.labels, units=st.seg.valid[st.seg.unit_tri],

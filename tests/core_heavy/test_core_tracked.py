@@ -190,7 +190,7 @@ def test_grown_links_spare_whole_fits_and_climb_to_the_true_link_count():
     the whole-fit rule fits 8..15: 8, 9 and 10 are passed on links grown on each count's fit up to
     its split stage (linkcount.partial_fit), and only 11, where the error reaches the floor, is
     fitted whole (finishing its partial fit). 9, 10 and 11 are fitted from the links grown on the
-    count below (linkcount.CLIMB_FROM_GROWN), and the fit handed back at 11 is the true partition,
+    count below (linkcount's start_fit), and the fit handed back at 11 is the true partition,
     as the fit fit.fit makes there. A link grown on the 10-link fit (one arm segment short) finds
     that segment: the error drops from over 1 % to the floor's order."""
     scan, truth = samples.branching()
@@ -298,7 +298,7 @@ def test_links_auto_drops_interpolating_links_on_smooth_blends():
 def test_upward_search_stops_where_the_fit_already_has_a_link_that_is_not_a_bone(monkeypatch):
     """A close call of the upward search (grown links neither clearly below nor above the bar) is
     decided by whole fits of the counts above k, unless k's own whole fit already has a link that
-    is not a bone (linkcount.STOP_ON_NON_BONES): then k is past the bones, the search stops right
+    is not a bone (linkcount.spurious_links): then k is past the bones, the search stops right
     after that fit and the drop of non-bones takes it down. The wide-blend branching object from 12
     links (one more than its 11 bones: a link spent inside a blend), the margins opened so that no
     grown chain settles a stop: the 12-link fit is the search's only whole fit, and the drop lands
@@ -422,7 +422,7 @@ def test_link_swaps_repair_a_merged_pair_and_a_split_link(monkeypatch):
     """A segmentation with two true links merged and another cut in two (same link count) is
     repaired by the swaps inside the skin decomposition; without them the dominant relabel alone
     cannot move a link across the object."""
-    from artdef_addon import merge
+    from artdef_addon import merge, swaps as swaps_module
     scan, truth = samples.branching()
     gl = truth["face_labels"]
     x0, faces, fields = scan.vertices, scan.faces, scan.fields()
@@ -437,9 +437,9 @@ def test_link_swaps_repair_a_merged_pair_and_a_split_link(monkeypatch):
     assert swaps >= 1
     assert quality.adjusted_rand_index(new, gl) > 0.99
     assert sorted(quality.match_links(new, gl)) == list(range(11))
-    monkeypatch.setattr(merge, "SWAP_LINKS", False)
+    monkeypatch.setattr(swaps_module, "SWAP_BUDGET", 0)          # no swaps: the scan above their budget
     old, none = merge.dominant_labels(x0, fields, faces, lab, R, t)
-    assert none == 0 and quality.adjusted_rand_index(old, gl) < 0.97
+    assert none is None and quality.adjusted_rand_index(old, gl) < 0.97
 
 
 @pytest.mark.parametrize("P", [1, 3])
