@@ -159,7 +159,8 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
     scan, weld = _seams.weld_scan(stored)      # copies at seams are one point to the fit
     requested, o = o, o.resolved(scan.kind)
     if o.mode == "pseudo" and scan.greens is None:
-        raise ScanError("pseudo-articulation needs a Green's-matrix scan (one model per load column)")
+        raise OptionsError("pseudo-articulation needs a Green's-matrix scan (one model per load column)",
+                           option="mode")
     key, seg = _checkout(scan, o, progress)
     seg_ok = False
     try:

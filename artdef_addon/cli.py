@@ -580,7 +580,7 @@ def _main(argv):
             # scan.MAX_MAGNITUDE) are not the user's to act on: the command prints its one line
             warnings.simplefilter("ignore", RuntimeWarning)
             return {"fit": _cmd_fit, "sample": _cmd_sample, "info": _cmd_info}[a.command](a)
-    except (_BadInput, ScanError, OutputError, OptionError) as exc:
+    except (_BadInput, ScanError, OptionsError, OutputError, OptionError) as exc:
         return _fail(" ".join(str(exc).split()) or "bad input")
     except KeyboardInterrupt as exc:
         what, code = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", 130)

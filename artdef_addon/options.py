@@ -26,7 +26,6 @@ import re
 
 import numpy as np
 
-from .scan import ScanError
 
 GB = 2 ** 30
 
@@ -35,10 +34,10 @@ GB = 2 ** 30
 MAX_AUTO_LINKS = 100
 
 
-class OptionsError(ScanError):
-    """A fit setting out of range or not one of its choices: bad input like a bad scan (every
-    front end reports a :class:`ScanError` in one line), the message names it, ``option`` is the
-    field's name (a front end may show its label instead)."""
+class OptionsError(ValueError):
+    """A fit setting out of range or not one of its choices (not a :class:`ScanError`: the scan may
+    be fine). Bad input all the same: every front end reports it in one line; the message names the
+    setting, ``option`` is the field's name (a front end may show its label instead)."""
 
     def __init__(self, message: str, option: str | None = None):
         super().__init__(message)

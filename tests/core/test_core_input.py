@@ -73,12 +73,13 @@ def test_more_links_than_triangles(rod):
 
 def test_bad_options(rod):
     """Settings are checked where they enter, the public fit (FitOptions), before any work."""
-    with pytest.raises(S.ScanError, match="pseudo-articulation needs a Green's-matrix scan"):
+    with pytest.raises(artdef_addon.OptionsError, match="pseudo-articulation needs a Green's-matrix scan"):
         artdef_addon.fit(rod, 3, mode="pseudo")
-    with pytest.raises(S.ScanError, match="p_max must be a number greater than 1"):
+    with pytest.raises(artdef_addon.OptionsError, match="p_max must be a number greater than 1"):
         artdef_addon.fit(rod, 3, p_max=0.5)
-    with pytest.raises(S.ScanError, match="mode must be one of"):
+    with pytest.raises(artdef_addon.OptionsError, match="mode must be one of"):
         artdef_addon.fit(rod, 3, mode="nope")
+    assert not issubclass(artdef_addon.OptionsError, S.ScanError)     # the scan is not at fault
 
 
 def test_load_refuses_pickles_and_garbage(tmp_path):
