@@ -55,6 +55,9 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--clip", action="append", default=[], metavar="FILE",
                    help="another clip of the same mesh (animated file or sequence; repeatable): "
                         "all clips are fitted as one rig with one action each")
+    f.add_argument("--mesh", action="append", default=[], metavar="NAME",
+                   help="animated files: fit this mesh of the file (repeatable; default: every "
+                        "animated mesh, fitted together as one rig)")
     f.add_argument("--frames", metavar="START:END[:STEP]",
                    help="animated files or sequences: frames to sample in each input, --clip "
                         "ones too (a sequence's file numbers are its frames; default: the "
@@ -346,6 +349,8 @@ def _cmd_fit(a) -> int:
             raise _BadInput(f"--clip {clip}: not a regular file")
     if frames is not None and kind == "npz":
         raise _BadInput("--frames applies to animated files and sequences, not to a .npz scan")
+    if a.mesh and kind != "animated":
+        raise _BadInput("--mesh applies to animated files, not to a .npz scan or a sequence")
     auto = str(a.links).strip().lower() == "auto"
     try:
         links = None if auto else LINKS.check("--links", a.links)
@@ -394,13 +399,16 @@ def _cmd_fit(a) -> int:
             raise _BadInput(f"{a.scan}: not a regular file")
         try:
             with blender_output() as import_log:
-                prepared, sc = headless.scan_from_file(a.scan, frames, clips=a.clip)
+                prepared, sc = headless.scan_from_file(a.scan, frames, clips=a.clip, meshes=a.mesh)
             if not a.quiet:
                 for line in _warnings_of(import_log, {}):
                     print(line)
                 dropped = prepared.data.get("artdef_dropped_faces") if prepared is not None else None
                 if dropped:
                     print(f"note: {dropped} faces of {a.scan} were left out: {wording.DROPPED_FACES}")
+                which = prepared.data.get("artdef_meshes") if prepared is not None else None
+                if which:
+                    print(f"note: {os.path.basename(a.scan)}: {which}")
         except RuntimeError as exc:
             line = str(exc).splitlines()[0] if str(exc) else "cannot read the file"
             if not any(os.path.basename(p.rstrip("/")) in line for p in (a.scan, *a.clip)):

@@ -4,7 +4,7 @@
 ``artdef.fields_from_file`` imports a .glb/.gltf, .fbx, .abc or .usd/.usdc/
 .usda/.usdz file with Blender's own importer (or a numbered OBJ/PLY sequence,
 a folder or a pattern, with ``artdef.import_mesh_sequence``), picks the
-animated mesh and samples it through ``artdef.fields_from_animation`` - the
+animated meshes (every one, or those named in ``meshes``; :mod:`parts`) and samples them through ``artdef.fields_from_animation`` - the
 same code as the Fields from Animation button - over the file's own frames:
 the frames the file has keys at (an even step when they are evenly spaced,
 else every frame of their range), or the scene range an Alembic/USD importer
@@ -21,7 +21,7 @@ import numpy as np
 from bpy.props import StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import compat, menus, rig
+from . import compat, menus, parts, rig
 from .ops import in_object_mode
 from .sources import FrameRange
 from ..artdef_addon import cli as _cli
@@ -62,15 +62,6 @@ def _sequence_path(path):
     return path
 
 
-def _is_custom_shape(obj):
-    """A mesh used only to draw bones (the glTF importer adds one)."""
-    for arm in bpy.data.objects:
-        if arm.type == 'ARMATURE' and arm.pose is not None:
-            if any(pb.custom_shape == obj for pb in arm.pose.bones):
-                return True
-    return False
-
-
 def _actions_moving(obj):
     """(action, slot) pairs that move mesh object ``obj``: its own, its shape
     keys', its armatures' and its parents'."""
@@ -90,18 +81,63 @@ def _actions_moving(obj):
     return out
 
 
-def animated_mesh(objects):
-    """The mesh to fit among ``objects``: the one with the most vertices of
-    those that something animates (an action on it, its shape keys, armature
-    or parents, or a cache modifier); None if nothing moves."""
-    best = None
+def activate_own_animations(objects):
+    """Give every armature among ``objects`` that has no active action the first action of its
+    NLA tracks: Blender's glTF importer makes one animation active and puts the others in NLA
+    tracks, so in a file of several characters, each with its own animation, all but one would
+    stand still."""
     for obj in objects:
-        if obj.type != 'MESH' or len(obj.data.polygons) == 0 or _is_custom_shape(obj):
+        ad = obj.animation_data if obj.type == 'ARMATURE' else None
+        if ad is None or ad.action is not None:
             continue
-        moving = bool(_actions_moving(obj)) or any(m.type in CACHE_MODIFIERS for m in obj.modifiers)
-        if moving and (best is None or len(obj.data.vertices) > len(best.data.vertices)):
-            best = obj
-    return best
+        strips = [s for t in ad.nla_tracks for s in t.strips if s.action is not None]
+        if strips:
+            compat.assign_action(obj, strips[0].action)
+
+
+def _moving(obj):
+    """Whether something animates mesh object ``obj``: an action on it, its shape keys,
+    armature or parents, or a cache modifier."""
+    return bool(_actions_moving(obj)) or any(m.type in CACHE_MODIFIERS for m in obj.modifiers)
+
+
+def animated_meshes(objects, chosen=()):
+    """``(meshes to fit, [(name, why left out)])`` among ``objects``: every animated mesh
+    (``chosen``: those named), largest first (:func:`parts.animated_meshes`)."""
+    return parts.animated_meshes(objects, _moving, chosen)
+
+
+def frames_of(objs, scene):
+    """(start, end, step) over which the file animates ``objs`` (:func:`file_frames` of each:
+    their whole range, their common step or 1)."""
+    ranges = [file_frames(o, scene) for o in objs]
+    steps = {r[2] for r in ranges}
+    return min(r[0] for r in ranges), max(r[1] for r in ranges), (steps.pop() if len(steps) == 1 else 1)
+
+
+def sample_meshes(context, objs, start, end, step):
+    """Sample ``objs`` over ``start..end`` by ``step`` through ``artdef.fields_from_animation``;
+    several meshes are joined into one scan (:func:`parts.join_scans`). Returns the scan object
+    (active) or None (reported)."""
+    copies, done = [], False
+    try:
+        for obj in objs:
+            context.view_layer.objects.active = obj
+            with context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
+                result = bpy.ops.artdef.fields_from_animation(frame_start=start, frame_end=end,
+                                                              frame_step=step)
+            if 'FINISHED' not in result:
+                return None
+            copies.append(context.view_layer.objects.active)
+        joined = copies[0] if len(copies) == 1 else parts.join_scans(context, copies, [o.name for o in objs])
+        done = True
+        return joined
+    finally:
+        if not done:  # failed half way: no copy stays
+            for other in copies:
+                data = other.data
+                bpy.data.objects.remove(other, do_unlink=True)
+                bpy.data.meshes.remove(data)
 
 
 def file_frames(obj, scene):
@@ -144,8 +180,8 @@ def _even_range(frames):
     return frames[0], frames[-1], (steps.pop() if len(steps) == 1 else 1)
 
 
-def sample_clips(context, obj, arm, actions):
-    """Sample ``obj`` once per clip (each action made the armature's active one,
+def sample_clips(context, objs, arm, actions):
+    """Sample the meshes ``objs`` once per clip (each action made the armature's active one,
     NLA off meanwhile) through ``artdef.fields_from_animation``, and merge the
     scans into the first copy: its fields are every clip's, in clip order, with
     ``artdef_field_clips``/``artdef_clip_names``/``artdef_clip_sampled`` for the
@@ -158,13 +194,10 @@ def sample_clips(context, obj, arm, actions):
         for action in actions:
             compat.assign_action(arm, action)
             start, end, step = _even_range(compat.keyed_frames(action))
-            context.view_layer.objects.active = obj
-            with context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
-                result = bpy.ops.artdef.fields_from_animation(frame_start=start, frame_end=end,
-                                                              frame_step=step)
-            if 'FINISHED' not in result:
+            scan_obj = sample_meshes(context, objs, start, end, step)
+            if scan_obj is None:
                 return None
-            copies.append(context.view_layer.objects.active)
+            copies.append(scan_obj)
             names.append(action.name)
         first = merge_clip_scans(copies, names)
         copies = copies[:1]
@@ -277,6 +310,9 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
     filepath: compat.blend_relative_filepath("Animated file or first file of a numbered sequence to import "
                                              "('//' for next to the .blend)", {'SKIP_PRESET', 'HIDDEN'})
     filename_ext = ""
+    meshes: StringProperty(name="Meshes", default="",
+                           description="Names of the meshes to fit, separated by commas (empty: every "
+                                       "animated mesh of the file, fitted together as one scan)")
 
     @classmethod
     def poll(cls, context):
@@ -324,20 +360,32 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
             line = operator_error(err) if isinstance(err, RuntimeError) else str(err).strip()
             self.report({'ERROR'}, f"Cannot import {os.path.basename(path)}: {line}")
             return {'CANCELLED'}
-        obj = animated_mesh(new)
-        if obj is None:
+        activate_own_animations(new)
+        try:
+            objs, left_out = animated_meshes(new, [n.strip() for n in self.meshes.split(",") if n.strip()])
+        except ValueError as err:
             self._remove(new)
-            self.report({'ERROR'}, f"{os.path.basename(path)}: no animated mesh in the file")
+            self.report({'ERROR'}, f"{os.path.basename(path)}: {err}")
             return {'CANCELLED'}
+        if not objs:
+            self._remove(new)
+            self.report({'ERROR'}, f"{os.path.basename(path)}: no animated mesh in the file"
+                                   + (f" ({parts.describe([], left_out).split('; ', 1)[1]})" if left_out else ""))
+            return {'CANCELLED'}
+        obj = objs[0]
+        which = parts.describe([o.name for o in objs], left_out)
+        if len(objs) > 1 or left_out:
+            self.report({'INFO'}, f"{os.path.basename(path)}: {which}")
         arm, clips = armature_clips(obj)
         given = self.given_frames()
         if clips and not given:
-            scan_obj = sample_clips(context, obj, arm, clips)
+            scan_obj = sample_clips(context, objs, arm, clips)
             if scan_obj is None:
                 self._remove(new)
                 self.report({'ERROR'}, f"{os.path.basename(path)}: sampling '{obj.name}' failed "
                                        "(see the Info log)")
                 return {'CANCELLED'}
+            scan_obj.data["artdef_meshes"] = which
             scan_obj.data["artdef_source_file"] = os.path.basename(path)
             scan_obj.data["artdef_source_path"] = os.path.abspath(path)   # Export Rig must not replace it
             for o in new:
@@ -346,11 +394,11 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
             for o in context.view_layer.objects:
                 o.select_set(o == scan_obj)
             context.view_layer.objects.active = scan_obj
-            self.report({'INFO'}, f"'{scan_obj.name}': '{obj.name}' of {os.path.basename(path)}, "
+            self.report({'INFO'}, f"'{scan_obj.name}': {', '.join(repr(o.name) for o in objs)} of {os.path.basename(path)}, "
                                   f"{len(clips)} clips ({', '.join(a.name for a in clips)}) "
                                   f"sampled at their own frames")
             return {'FINISHED'}
-        first, last, step = file_frames(obj, context.scene)
+        first, last, step = frames_of(objs, context.scene)
         step = given.get("frame_step", step)
         start, end = given.get("frame_start", first), given.get("frame_end", last)
         if given:   # the given range, on its own grid, within the file's frames
@@ -367,17 +415,13 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
             scene.frame_start, scene.frame_end = start, max(end, start)
         for o in context.view_layer.objects:
             o.select_set(False)
-        obj.select_set(True)
-        context.view_layer.objects.active = obj
-        with context.temp_override(active_object=obj, object=obj, selected_objects=[obj]):
-            result = bpy.ops.artdef.fields_from_animation(frame_start=start, frame_end=end,
-                                                          frame_step=step)
-        if 'FINISHED' not in result:
+        scan_obj = sample_meshes(context, objs, start, end, step)
+        if scan_obj is None:
             self._remove(new)
             self.report({'ERROR'}, f"{os.path.basename(path)}: sampling '{obj.name}' failed "
                                    "(see the Info log)")
             return {'CANCELLED'}
-        scan_obj = context.view_layer.objects.active
+        scan_obj.data["artdef_meshes"] = which
         scan_obj.data["artdef_source_file"] = os.path.basename(path)
         scan_obj.data["artdef_source_path"] = os.path.abspath(path)   # Export Rig must not replace it
         clips = _actions_moving(obj)
@@ -388,7 +432,7 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
         for o in new:
             o.hide_set(True)
             o.hide_render = True
-        self.report({'INFO'}, f"'{scan_obj.name}': '{obj.name}' of {os.path.basename(path)} "
+        self.report({'INFO'}, f"'{scan_obj.name}': {', '.join(repr(o.name) for o in objs)} of {os.path.basename(path)} "
                               f"sampled over frames {start}-{end} step {step}")
         return {'FINISHED'}
 

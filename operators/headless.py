@@ -465,23 +465,24 @@ def render_png(path: str, mesh, armature, resolution=(960, 640)) -> str:
 # Entry point used by artdef_addon.cli
 # --------------------------------------------------------------------------
 
-def scan_from_file(path: str, frames=None, clips=()):
+def scan_from_file(path: str, frames=None, clips=(), meshes=()):
     """See :func:`_scan_from_file`; Ctrl-C is a flag here too (:class:`_Interrupts`), raised as
     KeyboardInterrupt once Blender's import and sampling have returned."""
     with _Interrupts() as intr:
-        out = _scan_from_file(path, frames, clips)
+        out = _scan_from_file(path, frames, clips, meshes)
         intr.check()
         return out
 
 
-def _scan_from_file(path: str, frames=None, clips=()):
+def _scan_from_file(path: str, frames=None, clips=(), meshes=()):
     """Import an animated file or an OBJ/PLY sequence in a fresh scene and
     sample it into a tracked scan with ``bpy.ops.artdef.fields_from_file`` (the
     Fields from Animation code, over the file's own frames unless ``frames`` =
     (start, end, step), which applies to every input; a sequence's file numbers
     are its frames).  ``clips``: more files or sequences of the same mesh,
     each one clip: the scans are merged, so the fit makes one rig with one
-    action per clip (named after the files).  Returns ``(mesh object holding
+    action per clip (named after the files).  ``meshes``: the names of the file's meshes to
+    fit (default: every animated one, as one scan).  Returns ``(mesh object holding
     the scan, Scan)``; RuntimeError with a one-line reason on failure."""
     bpy = _bpy()
     import importlib  # noqa: PLC0415
@@ -494,7 +495,7 @@ def _scan_from_file(path: str, frames=None, clips=()):
     for p in [path, *clips]:          # --frames: every input alike
         messages = []
         try:
-            result = bpy.ops.artdef.fields_from_file(filepath=os.path.abspath(p), **given)
+            result = bpy.ops.artdef.fields_from_file(filepath=os.path.abspath(p), meshes=",".join(meshes), **given)
         except RuntimeError as ex:  # the operator's ERROR report
             messages.append(animfile.operator_error(ex))
             result = {'CANCELLED'}

@@ -69,3 +69,61 @@ def test_exported_rig_keeps_every_seam_closed(split_fit):
     gap = np.linalg.norm(moved[:, pairs[:, 0]] - moved[:, pairs[:, 1]], axis=-1)
     assert np.abs(moved - rest).max() > 0.05 * diag                 # the rig moves
     assert gap.max() <= 1e-6 * diag, gap.max() / diag
+
+
+# --------------------------------------------------------------------------
+# several animated meshes: every one fitted, as one rig
+# --------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def two_meshes(installed_addon, tmp_path_factory):
+    """A file with two characters, each its own armature and animation, and a static prop."""
+    d = tmp_path_factory.mktemp("two")
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    build_character(name="Leg")
+    _, arm2 = build_character(name="Other")
+    arm2.location = (1.5, 0.0, 0.0)
+    for f in KEYED:      # its own motion: about y, the other way
+        for i, pb in enumerate(arm2.pose.bones):
+            pb.rotation_euler = (0.0, -0.6 * np.sin(0.2 * f + i), 0.0)
+            pb.keyframe_insert("rotation_euler", frame=f)
+    bpy.ops.mesh.primitive_cube_add(size=0.3, location=(-1.5, 0.0, 0.0))
+    bpy.context.active_object.name = "Prop"
+    source = d / "two.glb"
+    assert bpy.ops.export_scene.gltf(filepath=str(source), export_format='GLB') == {'FINISHED'}
+    return source
+
+
+def test_every_animated_mesh_is_fitted_as_one_rig(two_meshes, tmp_path):
+    out = tmp_path / "out.glb"
+    proc = _ok(_run(["-m", "artdef_addon", "fit", str(two_meshes), "--links", "6", "--glb", str(out)], cwd=tmp_path))
+    note = next(ln for ln in proc.stdout.splitlines() if "meshes fitted:" in ln)
+    assert "meshes fitted: Leg, Other; left out: " in note and "Prop (static)" in note, note
+    assert "(a bone's custom shape)" in note      # the importer's bone shapes
+    imported = _import(two_meshes)
+    for arm in (o for o in imported if o.type == 'ARMATURE' and o.animation_data.action is None):
+        # Blender's importer plays one animation; the other character's waits in an NLA track
+        arm.animation_data.action = arm.animation_data.nla_tracks[0].strips[0].action
+        if hasattr(arm.animation_data, "action_slot") and arm.animation_data.action_slot is None:
+            arm.animation_data.action_slot = arm.animation_data.action.slots[0]
+    sources = [o for o in imported if o.type == 'MESH' and o.find_armature() is not None]
+    assert sorted(o.name for o in sources) == ["Leg", "Other"]
+    refs = [world_positions(o, KEYED) for o in sources]
+    objects = _import(out)
+    assert len([o for o in objects if o.type == 'ARMATURE']) == 1           # one armature over both
+    moved, rest = world_positions(_skinned(objects), KEYED)
+    n = sum(len(r[1]) for r in refs)
+    assert len(rest) >= n                                                  # every vertex of both
+    for ref, ref_rest in refs:                 # each mesh replays its own animation
+        mine = cKDTree(ref_rest).query(rest)[0] < 1e-4 * np.linalg.norm(np.ptp(ref_rest, axis=0))
+        worst, rms = compare(ref, ref_rest, moved[:, mine], rest[mine])
+        assert worst < MAX_TOL and rms < RMS_TOL, (worst, rms)
+
+
+def test_mesh_option_fits_the_chosen_mesh_only(two_meshes, tmp_path):
+    proc = _ok(_run(["-m", "artdef_addon", "fit", str(two_meshes), "--links", "3", "--mesh", "Other"], cwd=tmp_path))
+    note = next(ln for ln in proc.stdout.splitlines() if "meshes fitted:" in ln)
+    assert "meshes fitted: Other; left out: " in note and "Leg (not chosen)" in note and "Prop (static)" in note
+    assert "tracked scan, 456 vertices" in proc.stdout, proc.stdout      # Other's own (half of both)
+    bad = _run(["-m", "artdef_addon", "fit", str(two_meshes), "--links", "3", "--mesh", "Nope"], cwd=tmp_path)
+    assert bad.returncode == 2 and "no mesh named 'Nope'" in bad.stderr, bad.stderr

@@ -1,0 +1,131 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Every animated mesh of a file: which meshes are fitted, and their scans joined into one.
+
+A character is often several meshes (body, head, clothes, props) moved by one armature. Fields
+from File fits all of them together as one scan: each mesh is sampled by Fields from Animation
+over the same frames, the copies are put in world space and joined into one mesh object (its
+materials and UV maps kept), whose scan holds every mesh's vertices. One fit, one armature.
+The joined mesh records its parts (``artdef_parts``: the source mesh names in vertex order,
+``artdef_part_sizes``: their vertex counts).
+"""
+
+import bpy
+import numpy as np
+
+from ..artdef_addon import scan as _scan
+
+#: the temporary per-vertex attribute that tells the joined mesh's vertices apart by part
+PART_ATTR = "artdef_part_tag"
+
+
+def _is_custom_shape(obj):
+    """A mesh used only to draw bones (the glTF importer adds one)."""
+    for arm in bpy.data.objects:
+        if arm.type == 'ARMATURE' and arm.pose is not None:
+            if any(pb.custom_shape == obj for pb in arm.pose.bones):
+                return True
+    return False
+
+
+def animated_meshes(objects, moving, chosen=()):
+    """``(fitted, left_out)`` among ``objects``: the meshes to fit, largest first, and
+    ``(name, why)`` of every other mesh (a bone's custom shape, no faces, static, not chosen).
+    ``moving(obj) -> bool``: whether something animates it. ``chosen``: mesh names to fit (empty:
+    every animated one); ValueError naming a chosen mesh that is not in ``objects`` or cannot
+    be fitted."""
+    fitted, left_out = [], []
+    names = {o.name for o in objects if o.type == 'MESH'}
+    missing = [n for n in chosen if n not in names]
+    if missing:
+        raise ValueError(f"no mesh named {', '.join(repr(n) for n in missing)} in the file "
+                         f"(its meshes: {', '.join(sorted(names)) or 'none'})")
+    for obj in objects:
+        if obj.type != 'MESH':
+            continue
+        if _is_custom_shape(obj):
+            why = "a bone's custom shape"
+        elif len(obj.data.polygons) == 0:
+            why = "no faces"
+        elif not moving(obj):
+            why = "static"
+        elif chosen and obj.name not in chosen:
+            why = "not chosen"
+        else:
+            fitted.append(obj)
+            continue
+        if obj.name in chosen:
+            raise ValueError(f"mesh {obj.name!r} cannot be fitted: {why}")
+        left_out.append((obj.name, why))
+    fitted.sort(key=lambda o: (-len(o.data.vertices), o.name))
+    return fitted, left_out
+
+
+def describe(fitted_names, left_out) -> str:
+    """The report's words: "meshes fitted: Body, Head; left out: Icosphere (a bone's custom shape)"."""
+    text = "meshes fitted: " + ", ".join(fitted_names)
+    if left_out:
+        text += "; left out: " + ", ".join(f"{n} ({why})" for n, why in left_out)
+    return text
+
+
+def _world_scan(obj, scan, frames, all_frames):
+    """``(rest (N, 3), fields (F, N, 3))`` of a copy's scan in world space, over ``all_frames``
+    (F): a frame the copy left out (it equalled the rest there) has a zero field."""
+    m = np.array(obj.matrix_world, dtype=np.float64)
+    lin, shift = m[:3, :3], m[:3, 3]
+    rest = np.asarray(scan.vertices) @ lin.T + shift
+    fields = np.zeros((len(all_frames), scan.n_vertices, 3))
+    at = {f: i for i, f in enumerate(all_frames)}
+    fields[[at[f] for f in frames]] = np.asarray(scan.displacements) @ lin.T
+    return rest, fields
+
+
+def join_scans(context, copies, names):
+    """Join the tracked scans on ``copies`` (one per source mesh, ``names``; each sampled over the
+    same frames by Fields from Animation) into the first: one mesh in world space whose scan
+    holds every copy's vertices and fields over the union of their frames. The other copies are
+    removed. Returns the joined object."""
+    from . import io
+    scans = [io.read_scan(o).scan for o in copies]
+    kept = [[int(f) for f in o.data.get("artdef_frames", [])] for o in copies]
+    frames = sorted(set().union(*kept))
+    world = [_world_scan(o, s, k, frames) for o, s, k in zip(copies, scans, kept)]
+    sampled = [int(f) for f in copies[0].data.get("artdef_sampled_frames", frames)]
+    for k, (o, (rest, _)) in enumerate(zip(copies, world)):
+        mesh = o.data
+        mesh.vertices.foreach_set("co", rest.astype(np.float32).ravel())
+        o.matrix_world.identity()
+        attr = mesh.attributes.new(PART_ATTR, 'INT', 'POINT')
+        attr.data.foreach_set("value", np.full(len(mesh.vertices), k, dtype=np.int32))
+        io.clear_scan(mesh)
+        mesh.update()
+    target = copies[0]
+    for o in context.view_layer.objects:
+        o.select_set(o in copies)
+    context.view_layer.objects.active = target
+    with context.temp_override(active_object=target, object=target, selected_objects=list(copies),
+                               selected_editable_objects=list(copies)):
+        bpy.ops.object.join()
+    mesh = target.data
+    n = len(mesh.vertices)
+    part = np.empty(n, dtype=np.int32)
+    mesh.attributes[PART_ATTR].data.foreach_get("value", part)
+    mesh.attributes.remove(mesh.attributes[PART_ATTR])
+    order = np.argsort(part, kind="stable")             # each part's vertices keep their order
+    rest = np.empty((n, 3))
+    fields = np.empty((len(frames), n, 3))
+    start = 0
+    for k, (r, f) in enumerate(world):
+        at = order[start:start + len(r)]
+        rest[at], fields[:, at] = r, f
+        start += len(r)
+    faces, _ = io._triangles(mesh)
+    scan = _scan.validate_scan(_scan.Scan(rest, faces.astype(np.int64), displacements=fields))
+    io.write_scan(mesh, scan)
+    mesh["artdef_frames"] = frames
+    mesh["artdef_sampled_frames"] = sampled
+    starts = np.r_[0, np.flatnonzero(np.diff(part)) + 1]
+    mesh["artdef_parts"] = [names[int(k)] for k in part[starts]]
+    mesh["artdef_part_sizes"] = [int(c) for c in np.diff(np.r_[starts, n])]
+    mesh["artdef_source"] = names[0]       # the largest: its armature names the bones
+    return target
