@@ -31,7 +31,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
-from . import compat, menus, rig
+from . import compat, menus, parts, rig
 from .ops import in_object_mode
 from ..artdef_addon.files import Outputs, same_file
 
@@ -240,7 +240,7 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
         saved_frame = scene.frame_current
         saved_name = mesh_obj.name
         arm_hidden = arm.hide_get(view_layer=view_layer)
-        copy, baked = None, None
+        copy, baked, others = None, None, []
         try:
             arm.hide_set(False)
             step = 1
@@ -255,15 +255,16 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
             copy, left_out = _clean_copy(context, mesh_obj, arm, debug_attributes)
             mesh_obj.name = saved_name + "_artdef_export_source"
             copy.name = saved_name                   # the exported node keeps the mesh's name
+            others = parts.split_parts(context, copy)    # a file's several meshes: each its own
             clips = _clip_count(mesh_obj)
             export_scene, export_layer = scene, view_layer
             for o in export_layer.objects:
                 o.select_set(False, view_layer=export_layer)
-            copy.select_set(True, view_layer=export_layer)
-            arm.select_set(True, view_layer=export_layer)
+            for o in (copy, *others, arm):
+                o.select_set(True, view_layer=export_layer)
             export_layer.objects.active = copy
             with context.temp_override(scene=export_scene, view_layer=export_layer, active_object=copy,
-                                       object=copy, selected_objects=[copy, arm]):
+                                       object=copy, selected_objects=[copy, *others, arm]):
                 if fmt == 'FBX':
                     muted = []
                     if clips > 1:  # the FBX exporter writes one take per NOT muted NLA strip
@@ -281,6 +282,11 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
                 else:
                     _gltf(target, fmt, clip_name, debug_attributes, step, clips)
         finally:
+            for o in others:
+                data = o.data
+                bpy.data.objects.remove(o, do_unlink=True)
+                if data.users == 0:
+                    bpy.data.meshes.remove(data)
             if copy is not None:
                 data = copy.data
                 bpy.data.objects.remove(copy, do_unlink=True)

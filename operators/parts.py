@@ -129,3 +129,38 @@ def join_scans(context, copies, names):
     mesh["artdef_part_sizes"] = [int(c) for c in np.diff(np.r_[starts, n])]
     mesh["artdef_source"] = names[0]       # the largest: its armature names the bones
     return target
+
+
+def split_parts(context, obj):
+    """Cut the export copy ``obj`` of a joined scan back into its source meshes: ``obj`` keeps the
+    first part, a new object per other part (named after its source mesh, with ``_scan``) holds
+    that part's vertices with their vertex groups, shape keys, modifiers and parent. Returns the
+    new objects (none for a scan of one mesh). Each is exported as its own mesh."""
+    import bmesh
+    names = list(obj.data.get("artdef_parts", []))
+    sizes = [int(s) for s in obj.data.get("artdef_part_sizes", [])]
+    n = len(obj.data.vertices)
+    if len(names) < 2 or len(sizes) != len(names) or sum(sizes) != n:
+        return []
+    ends = np.cumsum(sizes)
+    starts = ends - np.asarray(sizes)
+    out = []
+    for k in range(1, len(names)):          # every copy made before any part is cut out
+        part = obj.copy()
+        part.data = obj.data.copy()
+        for coll in obj.users_collection:
+            coll.objects.link(part)
+        part.name = part.data.name = f"{names[k]}_scan"
+        out.append(part)
+    for k, part in enumerate([obj, *out]):
+        out_of_part = (np.arange(n) < starts[k]) | (np.arange(n) >= ends[k])
+        bm = bmesh.new()
+        try:
+            bm.from_mesh(part.data)
+            bm.verts.ensure_lookup_table()
+            bmesh.ops.delete(bm, geom=[bm.verts[int(i)] for i in np.flatnonzero(out_of_part)], context='VERTS')
+            bm.to_mesh(part.data)
+        finally:
+            bm.free()
+        part.data.update()
+    return out
