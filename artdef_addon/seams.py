@@ -76,17 +76,21 @@ def _field(scan: Scan, c: int) -> np.ndarray:
     return np.asarray(scan.field(c), dtype=np.float64)
 
 
+def _mix(a: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(N,) ``a (N, 3)`` · ``w (3,)``."""
+    return np.asarray(a, dtype=np.float64) @ w
+
+
 def weld(scan: Scan, tolerance: float = WELD_TOLERANCE) -> Weld:
     """The copies of ``scan``'s vertices (a checked :class:`Scan`; N vertices, P fields): vertices whose
     rest positions and displacements in every field differ by at most ``tolerance`` × the bounding-box
     diagonal, joined transitively.
 
-    Candidates come from a k-d tree on 6 numbers a vertex: its rest position and the mean over the
-    fields of its displacement turned by a fixed random rotation per field (a mean of rotated vectors
-    moves no more than the largest of them, so every pair of copies is within √2 × tolerance there).
-    Each candidate pair is then checked on the rest position and on every field. Vertices with equal
-    numbers are gathered first (np.unique), so a point stored many times costs a star of pairs, not all
-    pairs of its copies."""
+    Copies stored bit for bit (what exporters write) are gathered by one number a vertex, a fixed
+    random combination of its rest position and of its displacement in every field: each group is a star of candidate pairs (not all pairs of a
+    point's many copies). Copies that differ by rounding are found among the groups by a k-d tree on
+    the rest position and checked on the rest position and on every field, so points that touch at
+    rest but move apart are never joined."""
     x0 = np.asarray(scan.vertices, dtype=np.float64)
     n = x0.shape[0]
     diag = float(np.linalg.norm(np.ptp(x0, axis=0))) if n else 0.0
@@ -94,37 +98,45 @@ def weld(scan: Scan, tolerance: float = WELD_TOLERANCE) -> Weld:
     if n < 2 or not tol > 0:
         return identity(n)
     rng = np.random.default_rng(0x5EA3)
-    motion = np.zeros((n, 3))
     P = scan.n_fields
+    # one number a vertex from its rest position and its motion: copies stored bit for bit get the
+    # same number, gathered by one sort of N numbers (two equal rows rounded apart by a BLAS kernel
+    # would only go to the k-d tree's near pairs below, which join them as well)
+    code = _mix(x0, rng.standard_normal(3))
     for c in range(P):
-        q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
-        motion += _field(scan, c) @ q
-    motion /= max(P, 1)
-    key = np.concatenate([x0, motion], axis=1)
-    uniq, first_of, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        code += _mix(_field(scan, c), rng.standard_normal(3))
+    _, first_of, inverse = np.unique(code, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     star = np.flatnonzero(first_of[inverse] != np.arange(n))
-    pairs = cKDTree(uniq).query_pairs(np.sqrt(2.0) * tol * (1 + 1e-9), output_type="ndarray")
-    i = np.concatenate([star, first_of[pairs[:, 0]]]).astype(np.int64)
-    j = np.concatenate([first_of[inverse[star]], first_of[pairs[:, 1]]]).astype(np.int64)
-    if i.size == 0:
-        return identity(n)
-    keep = np.einsum("ij,ij->i", x0[i] - x0[j], x0[i] - x0[j]) <= tol * tol
+    # copies within the tolerance but not bit for bit: near rest positions among the groups' first
+    reps = x0[first_of]
+    pairs = cKDTree(reps, balanced_tree=False, compact_nodes=False).query_pairs(
+        tol * (1 + 1e-9), output_type="ndarray")
+    # a star pair has equal numbers: its rest positions are checked (the fields' share of the number
+    # ties only where they agree, but for a chance of about 2^-52); a near pair on every field
+    si, sj = star, first_of[inverse[star]]
+    d = x0[si] - x0[sj]
+    keep = np.einsum("ij,ij->i", d, d) <= tol * tol
+    si, sj = si[keep], sj[keep]
+    ni, nj = first_of[pairs[:, 0]], first_of[pairs[:, 1]]
+    d = x0[ni] - x0[nj]
+    keep = np.einsum("ij,ij->i", d, d) <= tol * tol
     for c in range(P):
         f = _field(scan, c)
-        d = f[i] - f[j]
+        d = f[ni] - f[nj]
         keep &= np.einsum("ij,ij->i", d, d) <= tol * tol
-    i, j = i[keep], j[keep]
+    i = np.concatenate([si, ni[keep]]).astype(np.int64)
+    j = np.concatenate([sj, nj[keep]]).astype(np.int64)
     if i.size == 0:
         return identity(n)
     graph = coo_matrix((np.ones(i.size, dtype=np.int8), (i, j)), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
-    lowest = np.full(comp.max() + 1, n, dtype=np.int64)
-    np.minimum.at(lowest, comp, np.arange(n, dtype=np.int64))
-    order = np.argsort(lowest, kind="stable")          # points numbered by their first copy
+    # points numbered by their first copy: the first occurrence of each component, in stored order
+    _, lowest = np.unique(comp, return_index=True)
+    order = np.argsort(lowest, kind="stable")
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
-    return Weld(rank[comp].astype(np.int64), lowest[order])
+    return Weld(rank[comp].astype(np.int64), lowest[order].astype(np.int64))
 
 
 def weld_scan(scan: Scan, tolerance: float = WELD_TOLERANCE) -> tuple[Scan, Weld]:
