@@ -27,6 +27,7 @@ from . import cost as _cost
 from . import fit as _fit
 from . import linkcount as _linkcount
 from . import pipeline as _pipeline
+from . import procs as _procs
 from . import seams as _seams
 from . import segmenter as _segmenter
 from .options import FitOptions, OptionsError
@@ -146,9 +147,16 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
 
     Returns a :class:`FitResult`: links ``face_labels (T,)``, tree ``parents (L,)``, joints
     ``(L, 3)``, skin ``weights (N, L)``, pose parameters ``angles, locations (P, L, 3)``, rest-space
-    residual ``(P, N, 3)`` … and ``save(path)`` / ``FitResult.load(path)``.
+    residual ``(P, N, 3)`` … and ``save(path)`` / ``FitResult.load(path)``. Independent work runs
+    on ``options.jobs`` processes (:mod:`parallel`; 1: in this process alone, the same rig).
     """
     o = _options(options, overrides)
+    with _procs.pooled(o.processes):
+        return _fit_pooled(scan, links, o, progress)
+
+
+def _fit_pooled(scan, links, o: FitOptions, progress):
+    """:func:`fit` inside its pool."""
     scan = _as_scan(scan)
     auto = isinstance(links, str) and links.strip().lower() == "auto"
     if not auto:
@@ -209,7 +217,8 @@ def segment(scan: Scan, links: int, options: FitOptions | None = None, progress=
     o = _options(options, {})
     scan, _ = _seams.weld_scan(validate_scan(_as_scan(scan)))
     o = o.resolved(scan.kind)
-    key, seg = _checkout(scan, o, progress)
+    with _procs.pooled(o.processes):
+        key, seg = _checkout(scan, o, progress)
     seg_ok = False
     try:
         labels = seg.labels(int(links))

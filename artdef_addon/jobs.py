@@ -16,6 +16,9 @@ fit before it takes the machine's memory (and the user's session with it).
 """
 from __future__ import annotations
 
+import dataclasses
+import os
+
 from . import procs
 from .options import FitOptions
 from .scan import Scan
@@ -51,10 +54,10 @@ def _links(params):
 
 def fit(arrays, params, report):
     """The child's half of :meth:`Session.fit`: :func:`api.fit`; the result's arrays."""
-    import dataclasses
     from . import api, result as _result
     result = api.fit(_scan(arrays, params), _links(params), _options(params), report.progress)
-    extra = {"link_errors": [float(e) for e in result.link_errors], "reduced": bool(result.reduced),
+    extra = {"pid": os.getpid(), "link_errors": [float(e) for e in result.link_errors],
+             "reduced": bool(result.reduced),
              "groups": result.groups,
              "estimate": None if result.estimate is None else dataclasses.asdict(result.estimate)}
     return extra, _result.result_arrays(result)
@@ -65,17 +68,34 @@ def segment(arrays, params, report):
     from . import api
     labels, reduced, notes = api.segment(_scan(arrays, params), _links(params), _options(params),
                                          report.progress)
-    return {"reduced": bool(reduced), "notes": [str(n) for n in notes]}, {"labels": labels}
+    return ({"pid": os.getpid(), "reduced": bool(reduced), "notes": [str(n) for n in notes]},
+            {"labels": labels})
 
 
 def cached(arrays, params, report):
     """The child's half of :meth:`Session.cached`: which kept segmentation would serve."""
     from . import api
     seg = api.cached(_scan(arrays, params), _options(params))
-    return {"token": None if seg is None else id(seg)}
+    if seg is None:
+        return {"token": None, "reduced": False}
+    if getattr(seg, "kept_token", None) is None:
+        _TOKENS.append(None)
+        seg.kept_token = f"{os.getpid()}-{len(_TOKENS)}"     # unique across workers and their lives
+    return {"token": seg.kept_token, "reduced": bool(seg.reduced)}
+
+
+_TOKENS = []
 
 
 # ---------------------------------------------------------------------------- the parent's side
+
+@dataclasses.dataclass(frozen=True)
+class Kept:
+    """A segmentation the worker keeps: ``token`` names it (equal while the same one serves),
+    ``reduced``: whether it is the reduced method's."""
+    token: str
+    reduced: bool
+
 
 def result_from(values: dict, arrays: dict, options: FitOptions):
     """The :class:`fit.FitResult` of a ``fit`` call's reply (``options``: as the call was asked)."""
@@ -159,12 +179,12 @@ class Session:
         return arrays["labels"], values["reduced"], values["notes"]
 
     def cached(self, scan: Scan, options=None):
-        """A token naming the worker's kept segmentation for ``scan`` and ``options`` (the same
-        token while the same one serves), or None: nothing kept, or no worker running."""
+        """The worker's kept segmentation for ``scan`` and ``options`` (:class:`Kept`), or None:
+        nothing kept, or no worker running."""
         if self.worker is None or not self.worker.alive():
             return None
         values, _ = self._wait(self.submit("cached", scan, 0, options), None)
-        return values["token"]
+        return None if values["token"] is None else Kept(values["token"], values["reduced"])
 
     def _wait(self, call, progress):
         def each(message):

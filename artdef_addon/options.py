@@ -194,6 +194,10 @@ class FitOptions:
                     "scan whose full method would need more switches to the reduced method on "
                     "patches instead of running out of memory; it also sets how many patches the "
                     "reduced method uses")
+    jobs: int = _field(
+        0, label="Jobs", type=int, min=0, max=256, soft_max=64, advanced=True,
+        description="Processes the fit's independent work is spread over (0: one per core of "
+                    "the machine; 1: the serial path, the same rig)")
     reduce: str = _field(
         "auto", label="Reduced Method", type=str,
         description="Segment small patches of triangles instead of every triangle (large scans)",
@@ -260,6 +264,14 @@ class FitOptions:
     @property
     def budget_bytes(self) -> float:
         return float(self.memory_budget) * GB
+
+    @property
+    def processes(self) -> int:
+        """The processes :attr:`jobs` asks for (0: the CPUs this process may use)."""
+        if self.jobs:
+            return int(self.jobs)
+        from .procs import cores
+        return cores()
 
     @property
     def reduce_arg(self) -> bool | None:

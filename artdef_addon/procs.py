@@ -214,15 +214,19 @@ class Worker:
     ``memory_limit``: bytes the child may map beyond what it holds after importing ``preload``
     (Linux: ``RLIMIT_AS``; elsewhere not enforced). ``paths``: folders put on the child's
     ``sys.path`` before the parent's. ``preload``: modules imported at start-up (their cost is
-    paid once, not per call). ``env``: extra environment variables for the child."""
+    paid once, not per call). ``env``: extra environment variables for the child. ``own_group``:
+    the child leads its own process group (killed with everything it starts, and the terminal's
+    Ctrl-C is the parent's); a :class:`Pool`'s workers stay in their parent's group instead, so
+    that killing the parent's group ends them too."""
 
     def __init__(self, *, memory_limit: float | None = None, paths=(), preload=(), interpreter=None,
-                 env: dict | None = None, name: str = "artdef-worker"):
+                 env: dict | None = None, name: str = "artdef-worker", own_group: bool = True):
         self.memory_limit = None if memory_limit is None else float(memory_limit)
         self.paths, self.preload = list(paths), list(preload)
         self.interpreter = list(interpreter) if interpreter else [sys.executable]
         self.extra_env = dict(env or {})
         self.name = name
+        self.own_group = own_group
         self.folder = None
         self.process = None
         self.killed = False
@@ -242,9 +246,11 @@ class Worker:
         env.update(self.extra_env)
         self._log = open(os.path.join(self.folder, "stderr.txt"), "wb")
         kw = {}
-        if os.name == "posix":
-            kw["start_new_session"] = True      # its own process group: killed with its children,
-        else:                                    # and the terminal's Ctrl-C is the parent's
+        if not self.own_group:
+            pass
+        elif os.name == "posix":
+            kw["start_new_session"] = True
+        else:
             kw["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP
         try:
             self.process = subprocess.Popen(
@@ -270,7 +276,9 @@ class Worker:
         self.killed = True
         if p.poll() is None:
             try:
-                if os.name == "posix":
+                if not self.own_group:
+                    p.kill()
+                elif os.name == "posix":
                     os.killpg(p.pid, signal.SIGKILL)
                 else:
                     subprocess.run(["taskkill", "/F", "/T", "/PID", str(p.pid)],
@@ -386,6 +394,152 @@ def run(function: str, arrays: dict | None = None, params: dict | None = None, *
     up; returns ``(values, arrays)`` or raises :class:`WorkerError`."""
     with Worker(**worker) as w:
         return w.submit(function, arrays, params, timeout).wait(on_message)
+
+
+# ------------------------------------------------------------------------------- a pool of workers
+
+def cores() -> int:
+    """The CPUs this process may use (the default of ``FitOptions.jobs``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:          # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class Pool:
+    """Up to ``jobs`` worker processes that live for one fit (start-up paid once): :meth:`map`
+    runs independent tasks on them, large arrays written once by :meth:`share` as ``.npy`` files that every
+    worker maps read-only (:func:`shared`), not copied per task. Its workers stay in this process's
+    group: killing a :class:`Worker` that runs a fit with a pool ends the pool's workers too.
+    ``memory_limit``: bytes each worker may map (see :class:`Worker`)."""
+
+    def __init__(self, jobs: int, memory_limit: float | None = None, preload=(), paths=()):
+        self.jobs = max(1, int(jobs))
+        self.paths = list(paths)
+        self.memory_limit = memory_limit
+        self.preload = list(preload)
+        self.workers: list = []
+        self.folder = None
+        self._shared = 0
+
+    def _start(self):
+        if self.folder is None:
+            self.folder = tempfile.mkdtemp(prefix="artdef-pool-")
+        while len(self.workers) < self.jobs:
+            self.workers.append(Worker(memory_limit=self.memory_limit, preload=self.preload,
+                                       paths=self.paths, name="artdef-pool", own_group=False).start())
+
+    def share(self, array) -> str:
+        """Write ``array`` once for every worker; returns the path a task passes to :func:`shared`."""
+        self._start()
+        self._shared += 1
+        path = os.path.join(self.folder, f"shared-{self._shared}.npy")
+        np.save(path, np.ascontiguousarray(array), allow_pickle=False)
+        return path
+
+    def map(self, function: str, tasks: list, arrays: list | None = None, on_result=None) -> list:
+        """``function`` on every task (a dict of JSON values; ``arrays[i]``: task i's own small
+        arrays), spread over the workers; returns the ``(values, arrays)`` in task order.
+        ``on_result(i, reply)`` is called here as each task's reply is taken (progress,
+        cancelling: it may raise). A task that fails raises here: ``MemoryError`` for memory,
+        else :class:`WorkerError`; the pool is then closed."""
+        out = []
+        for i, reply in enumerate(self.imap(function, tasks, arrays)):
+            out.append(reply)
+            if on_result is not None:
+                on_result(i, reply)
+        return out
+
+    def imap(self, function: str, tasks: list, arrays: list | None = None):
+        """:meth:`map` as a generator of the replies in task order, at most one task per worker
+        ahead of the one it yields (a stream's memory stays that of a few replies)."""
+        self._start()
+        n = len(tasks)
+        done = {}
+        busy = {}                                   # worker index -> (task index, call)
+        nxt = 0                                     # next task to hand out
+        want = 0                                    # next reply to yield
+        try:
+            while want < n:
+                for k, w in enumerate(self.workers):
+                    if k not in busy and nxt < n and nxt - want < 2 * self.jobs:
+                        busy[k] = (nxt, w.submit(function, arrays[nxt] if arrays else None, tasks[nxt]))
+                        nxt += 1
+                for k in [k for k, (i, call) in busy.items() if call.done]:
+                    i, call = busy.pop(k)
+                    done[i] = call.result()
+                if want in done:
+                    yield done.pop(want)
+                    want += 1
+                    continue
+                if busy:
+                    try:
+                        self.workers[next(iter(busy))].process.wait(0.002)
+                    except subprocess.TimeoutExpired:
+                        pass
+        except WorkerError as err:
+            self.close()
+            if err.kind == "memory":
+                raise MemoryError(str(err)) from None
+            raise
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        for w in self.workers:
+            w.close()
+        self.workers = []
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            self.folder = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+_CURRENT = []        # the pools of the fits running in this process, innermost last
+
+
+class pooled:
+    """``with pooled(jobs):`` — the stages of a fit inside the block may spread their independent
+    work over :func:`current`'s pool of ``jobs`` processes (1: no pool, the serial path). The
+    pool starts on first use and ends with the block."""
+
+    def __init__(self, jobs: int, memory_limit: float | None = None):
+        self.pool = Pool(jobs, memory_limit, preload=[f"{_CORE}.api"]) if jobs > 1 else None
+
+    def __enter__(self):
+        _CURRENT.append(self.pool)
+        return self.pool
+
+    def __exit__(self, *exc):
+        _CURRENT.pop()
+        if self.pool is not None:
+            self.pool.close()
+        return False
+
+
+def current() -> Pool | None:
+    """The pool of the innermost :class:`pooled` block, or None (serial)."""
+    return _CURRENT[-1] if _CURRENT else None
+
+
+_MAPPED: dict = {}
+
+
+def shared(path: str) -> np.ndarray:
+    """In a pool's worker: the array :meth:`Pool.share` wrote at ``path``, mapped read-only once."""
+    a = _MAPPED.get(path)
+    if a is None:
+        if len(_MAPPED) > 32:
+            _MAPPED.clear()
+        a = _MAPPED[path] = np.load(path, mmap_mode="r", allow_pickle=False)
+    return a
 
 
 # ----------------------------------------------------------------------------------------- child

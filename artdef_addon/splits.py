@@ -24,7 +24,7 @@ A split trial
 3. starts both halves from the least-squares motions of their faces (Kabsch/Arun, docs/method_notes_model.md §6) and
    runs ``swaps.TRIAL_ROUNDS`` rounds of the decomposition.
 
-A round's trials run in lockstep on two threads (:func:`run_lockstep`): a trial still far above its
+A round's trials run in lockstep (:func:`run_lockstep`): a trial still far above its
 target after 1-3 rounds (``FAR``) or, after ``BEHIND_ROUND`` rounds, far behind the round's best
 (``BEHIND``, ``KEEP``) is given up. The best trial of a round is kept when it lowers E by at least
 ``MIN_GAIN`` (in candidate order, a later trial only when it lowers the kept one's E by as much); the faces then go to
@@ -38,7 +38,6 @@ import numpy as np
 from .joints import lsq_motions
 from .merge import dominant_faces
 from .quality import vertex_spread
-from .skinning import stepping
 from .swaps import reassign_faces
 
 #: links tried for a cut per round: those whose vertices hold most of the decomposition error
@@ -69,10 +68,6 @@ BEHIND_ROUND = 2
 BEHIND = 1.5
 #: ... and so is every trial but the ``KEEP`` lowest then
 KEEP = 3
-#: threads the trials of a round are stepped on, at most one per core the process may use (numpy
-#: releases the GIL in most of a round's work: 1.2-1.45x on the 2-core machine with two; the answers
-#: do not depend on it)
-THREADS = 2
 #: rounds of splits at most (each keeps one)
 MAX_SPLITS = 4
 
@@ -88,38 +83,36 @@ def principal_cut(points: np.ndarray) -> np.ndarray:
 
 
 def run_lockstep(runs, behind_round: int | None = None, behind: float | None = None,
-                 keep: int | None = None, threads: int | None = None) -> None:
+                 keep: int | None = None) -> None:
     """Run the :class:`skinning.Alternation` ``runs`` (one round's split trials) to their end in
-    lockstep: all start, then every unfinished one steps a round at a time, on ``threads`` threads
-    (default :data:`THREADS`; at most one per core, :func:`skinning.stepping`). After
+    lockstep: all start, then every unfinished one steps a round at a time. After
     ``behind_round`` rounds (default :data:`BEHIND_ROUND`) a run whose error is above ``behind``
     (default :data:`BEHIND`) times the lowest error of the runs, or above the ``keep``-th lowest
     (default :data:`KEEP`), is stopped: on the rigged models (18 fits of RobotExpressive's and
     CesiumMan's fresh poses, the wolf, cheburashka and dembones_bone: 41 rounds, 509 trials) the
     trial a round kept never stood above 1.5x the lowest error nor below third after 2 rounds,
-    while most losing ones stood at 1.5-20x. Each run's arithmetic is its own, so the results do
-    not depend on the threads."""
+    while most losing ones stood at 1.5-20x."""
     behind_round = BEHIND_ROUND if behind_round is None else behind_round
     behind = BEHIND if behind is None else behind
     keep = KEEP if keep is None else keep
-    threads = THREADS if threads is None else threads
     if not runs:
         return
-    with stepping(threads, len(runs)) as each:
-        each(lambda a: a.start(), runs)
-        r = 0
-        while True:
-            live = [a for a in runs if not a.finished]
-            if not live:
-                break
-            each(lambda a: a.step(), live)
-            r += 1
-            if r == behind_round:
-                low = min(a.e for a in runs)
-                ahead = sorted(a.e for a in runs)[keep - 1] if len(runs) >= keep else np.inf
-                for a in runs:
-                    if not a.finished and (a.e > behind * low or a.e > ahead):
-                        a.stop()
+    for a in runs:
+        a.start()
+    r = 0
+    while True:
+        live = [a for a in runs if not a.finished]
+        if not live:
+            break
+        for a in live:
+            a.step()
+        r += 1
+        if r == behind_round:
+            low = min(a.e for a in runs)
+            ahead = sorted(a.e for a in runs)[keep - 1] if len(runs) >= keep else np.inf
+            for a in runs:
+                if not a.finished and (a.e > behind * low or a.e > ahead):
+                    a.stop()
 
 
 def _relabel(x0, fields, faces, labels, w, R, t, e, units, rows=None):

@@ -1,19 +1,12 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""The work of Fit and Preview Links, run off the main thread: no bpy access in a job.
-
-A job calls the core (:func:`artdef_addon.fit` / :func:`artdef_addon.segment`) with a progress
-callback that records the stage for the status bar and answers a cancel (Esc, or a hook of
-:data:`.state.PROGRESS_HOOKS`).
+"""The work of Fit and Preview Links, run in the add-on's worker process (:mod:`.worker`): no
+bpy access in a job. The worker's progress reports give the stage for the status bar; a cancel
+(Esc, or a hook of :data:`.state.PROGRESS_HOOKS`) ends the worker.
 """
 
-import threading
-import time
-
-from ..artdef_addon import api as _api
-from ..artdef_addon.options import FitOptions
 from . import fitquality, io
 from .props import options_from
-from .state import PROGRESS_HOOKS
+from .worker import FitJob, PreviewJob, cached
 
 
 #: Status-bar wording of the progress stages the core reports; ``True``: the
@@ -51,58 +44,11 @@ def stage_text(stage, fraction):
     return f"{label} {100 * min(max(fraction, 0.0), 1.0):.0f}%"
 
 
-class _FitJob:
-    """One fit: the core's public :func:`artdef_addon.fit` runs here (possibly in a worker
-    thread); no bpy access."""
+class _FitJob(FitJob):
+    """One fit in the add-on's worker process (:mod:`.worker`); no bpy access."""
 
     def __init__(self, scan, links, options=None, load_index=0):
-        self.scan, self.links = scan, links            # links: int or "auto"
-        self.options = options if options is not None else FitOptions()
-        self.load_index = load_index
-        self.link_reason = ""
-        self.model = None            # the result whose rig is built (pseudo: one load point's)
-        self.vertex_residual = None  # (N,) articulation residual of ``model``
-        self.stage, self.fraction = "start", 0.0
-        self.links_fraction = None   # while Auto Links tries link counts: how far it is
-        self.cancel = threading.Event()
-        self.result = None
-        self.error = None
-        self.seconds = 0.0
-        self.thread = None
-
-    def progress(self, stage, fraction):
-        self.stage, self.fraction = stage, float(fraction)
-        if stage == "links":
-            # the search reports 1 when it has chosen; a fit of that count may follow
-            self.links_fraction = float(fraction) if fraction < 1.0 else None
-        if self.cancel.is_set():
-            return True
-        return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))
-
-    def run(self, on_progress=None):
-        def callback(stage, fraction):
-            stop = self.progress(stage, fraction)
-            if on_progress is not None:
-                on_progress(stage, fraction)
-            return stop
-        t0 = time.perf_counter()
-        try:
-            self.result = _api.fit(self.scan, self.links, self.options, callback)
-            self.links_fraction = None
-            self.links, self.link_reason = self.result.n_links, self.result.link_reason
-            self.model, self.vertex_residual = model_of(self.result, self.scan, self.load_index)
-        except BaseException as err:  # reported on the main thread
-            self.error = err
-        self.seconds = time.perf_counter() - t0
-
-    @property
-    def notes(self):
-        """The core's notes on this fit (e.g. that and why the reduced method ran)."""
-        return [str(n) for n in (getattr(self.result, "notes", None) or [])]
-
-    @property
-    def reduced(self):
-        return bool(getattr(self.result, "reduced", False))
+        super().__init__(scan, links, options, load_index, model_of=model_of)
 
     def status_text(self):
         """What the status bar shows while the job runs."""
@@ -112,15 +58,11 @@ class _FitJob:
             text = f"{stage_text('links', self.links_fraction)} ({text})"
         return text
 
-    def start_thread(self):
-        self.thread = threading.Thread(target=self.run, name="artdef-fit", daemon=True)
-        self.thread.start()
-
 
 def model_of(result, scan, load_index=0):
     """``(model, vertex residual (N,))``: the result whose rig is built — the result, or in pseudo
     mode load point ``load_index``'s model (None if there is none) — and its per-vertex
-    articulation residual. Numpy only (runs in the fit's thread)."""
+    articulation residual. Numpy only."""
     model, fields = result, None
     if result.mode == "pseudo":
         pseudo = result.pseudo or []
@@ -131,42 +73,20 @@ def model_of(result, scan, load_index=0):
     return model, fitquality.vertex_residual(model, scan, fields)
 
 
-class _PreviewJob:
-    """Segment one scan for Preview Links (possibly in a worker thread); no bpy access.
+class _PreviewJob(PreviewJob):
+    """Segment one scan for Preview Links in the worker process; no bpy access.
 
-    The core's :func:`artdef_addon.segment` keeps the segmentation, which the next preview or fit
-    of the same scan and method settings reuses; the progress callback reports the stage and
-    cancels on Esc, like the fit's.
+    The worker keeps the segmentation, which the next preview or fit of the same scan and method
+    settings reuses; Esc ends the worker like the fit's.
     """
 
     def __init__(self, obj_name, stored, options, links):
-        self.obj_name, self.stored, self.options = obj_name, stored, options
-        self.links = links
-        self.cached = _api.cached(stored.scan, options) is not None
-        self.labels = None
-        self.error = None
-        self.stage, self.fraction = "start", 0.0
-        self.cancel = threading.Event()
-        self.thread = None
-
-    def progress(self, stage, fraction):
-        self.stage, self.fraction = stage, float(fraction)
-        if self.cancel.is_set():
-            return True
-        return any(hook(stage, fraction) for hook in list(PROGRESS_HOOKS))
-
-    def run(self):
-        try:
-            self.labels, _, _ = _api.segment(self.stored.scan, self.links, self.options, self.progress)
-        except BaseException as err:  # reported on the main thread
-            self.error = err
+        super().__init__(stored.scan, links, options)
+        self.obj_name, self.stored = obj_name, stored
+        self.cached = cached(stored.scan, options) is not None
 
     def status_text(self):
         return stage_text(self.stage, self.fraction)
-
-    def start_thread(self):
-        self.thread = threading.Thread(target=self.run, name="artdef-preview", daemon=True)
-        self.thread.start()
 
 
 def _preview_job(obj, links):

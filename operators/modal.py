@@ -1,16 +1,20 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""The interactive path shared by Fit and Preview Links: a worker runs the job, a modal timer
-shows its progress, Esc cancels."""
+"""The interactive path shared by Fit and Preview Links: the worker process runs the job, a modal
+timer polls its progress, Esc ends it."""
 
 import traceback
 
+from ..artdef_addon import procs as _procs
 from ..artdef_addon import result as _result
 from ..artdef_addon import scan as _scan
 
+#: exceptions of the core that mean bad input (reported as their one line, no traceback)
+_BAD_INPUT = {"ScanError", "OptionsError", "BadFile", "ValueError"}
+
 
 class _WorkerModal:
-    """The interactive path shared by Fit and Preview Links: the job runs in a worker thread,
-    a modal timer shows its stage and progress, Esc cancels, the view can still be navigated.
+    """The interactive path shared by Fit and Preview Links: the job runs in the worker process,
+    a modal timer polls its stage and progress, Esc ends it, the view can still be navigated.
 
     The operator sets ``_what`` (status-bar word) and implements ``_finish(context, job)``.
     """
@@ -24,7 +28,7 @@ class _WorkerModal:
         wm.progress_begin(0, 1000)
         self._timer = wm.event_timer_add(0.1, window=context.window)
         wm.modal_handler_add(self)
-        job.start_thread()
+        job.start()
         self._status(context, job.status_text())
         return {'RUNNING_MODAL'}
 
@@ -44,14 +48,15 @@ class _WorkerModal:
     def modal(self, context, event):
         job = self._job
         if event.type == 'ESC':
-            job.cancel.set()
+            job.cancel()            # the worker is killed: ended within a second
             self._end(context)
             self.report({'WARNING'}, f"{self._what.capitalize()} cancelled; the scene is unchanged")
             return {'CANCELLED'}
         if event.type == 'TIMER':
+            finished = job.poll()   # never blocks
             context.window_manager.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0)))
             self._status(context, job.status_text())
-            if not job.thread.is_alive():
+            if finished:
                 self._end(context)
                 return self._finish(context, job)
             return {'RUNNING_MODAL'}
@@ -68,6 +73,13 @@ class _WorkerModal:
             return False
         if isinstance(err, _result.FitCancelled):
             self.report({'WARNING'}, f"{what} cancelled; the scene is unchanged")
+        elif isinstance(err, _procs.WorkerError):
+            bug = err.kind == "error" and err.type_name not in _BAD_INPUT
+            if bug and err.details:
+                print(err.details)          # a bug in the worker: its traceback to the console
+            tag = f" ({err.type_name})" if bug else ""
+            self.report({'ERROR'}, f"{what} failed{tag}: {err}"
+                        + ("" if err.kind == "error" else "; the scene is unchanged"))
         elif isinstance(err, (_scan.ScanError, ValueError)):
             self.report({'ERROR'}, f"{what} failed: {err}")
         else:
@@ -77,5 +89,5 @@ class _WorkerModal:
 
     def cancel(self, context):  # window closed / file loaded while running
         if self._job is not None:
-            self._job.cancel.set()
+            self._job.cancel()
         self._end(context)

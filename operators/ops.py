@@ -14,7 +14,7 @@ from ..artdef_addon import api as _api
 from ..artdef_addon import fit as _fit  # noqa: F401  (kept importable from here)
 from ..artdef_addon import scan as _scan
 from ..artdef_addon.options import FitOptions, OptionsError
-from . import compat, io, menus, rig
+from . import compat, io, menus, rig, worker
 from .apply import apply_result, store_summary  # noqa: F401
 from .jobs import _STAGES, _FitJob, _PreviewJob, _preview_job, model_of, stage_text  # noqa: F401
 from .modal import _WorkerModal
@@ -36,8 +36,9 @@ def method_plan(triangles, fields, vertices, kind, reduce='AUTO', budget_gb=2.0,
 
 
 def cached_segmentation(obj):
-    """The core's kept segmentation of ``obj``'s scan for its settings, or None (tests, scripts)."""
-    return _api.cached(io.read_scan(obj).scan, options_from(obj.artdef))
+    """The worker's kept segmentation of ``obj``'s scan for its settings (``jobs.Kept``: equal
+    while the same one serves), or None (tests, scripts)."""
+    return worker.cached(io.read_scan(obj).scan, options_from(obj.artdef))
 
 
 def _active_mesh(context):
@@ -307,12 +308,12 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
         wm = context.window_manager
         wm.progress_begin(0, 1000)
         try:
-            job.run(on_progress=lambda s, f: wm.progress_update(int(1000 * min(max(f, 0.0), 1.0))))
+            job.start().wait(lambda: wm.progress_update(int(1000 * min(max(job.fraction, 0.0), 1.0))))
         finally:
             wm.progress_end()
         return self._finish(context, job)
 
-    # -- interactive path: worker thread + modal timer, Esc cancels ----------
+    # -- interactive path: worker process + modal timer, Esc cancels ---------
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
@@ -352,10 +353,10 @@ class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
         job = self._prepare(context)
         if job is None:
             return {'CANCELLED'}
-        job.run()
+        job.start().wait()
         return self._finish(context, job)
 
-    # -- interactive path: the first clustering of a big scan runs in a worker thread,
+    # -- interactive path: the first clustering of a big scan runs in the worker process,
     #    with progress in the status bar and Esc to cancel (a cached one is instant)
     def invoke(self, context, event):
         if not self.properties.is_property_set("links"):
@@ -366,7 +367,7 @@ class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
         if job is None:
             return {'CANCELLED'}
         if job.cached:
-            job.run()
+            job.start().wait()
             return self._finish(context, job)
         return self._start_modal(context, job)
 

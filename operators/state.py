@@ -1,9 +1,7 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """What the add-on keeps between operator calls (in memory only, not saved in the .blend)."""
 
-from ..artdef_addon import api as _api
-
-#: Extra cancel checks consulted by every fit's progress callback:
+#: Extra cancel checks consulted for every progress report of a fit or preview (:mod:`.worker`):
 #: ``hook(stage, fraction) -> bool`` (True cancels).  For scripts and tests;
 #: the interactive path cancels with Esc.
 PROGRESS_HOOKS = []
@@ -18,6 +16,7 @@ def last_result(obj):
 
 
 def _forget():
-    """What the add-on keeps between fits: the core's cached segmenters and the last results."""
-    _api.clear_cache()
+    """What the add-on keeps between fits: the worker (with its segmentations) and the last results."""
+    from .worker import forget
+    forget()
     LAST_RESULTS.clear()

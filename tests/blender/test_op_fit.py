@@ -7,6 +7,10 @@ Everything goes through ``bpy.ops.artdef.*`` of the extension installed from the
 the core used for reference numbers is the installed copy too.
 """
 import importlib
+import os
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -118,7 +122,7 @@ def test_failed_fit_changes_nothing(clean_scene, sample_files):
 
 
 def test_cancelled_fit_changes_nothing(clean_scene, pkg, sample_files):
-    pkg.api.clear_cache()      # the clustering runs (an earlier test's fit of this scan may be kept)
+    pkg.ops.worker.forget()    # the clustering runs (an earlier test's fit of this scan may be kept)
     import_scan(sample_files["branching"])
     before = scene_snapshot()
     seen = []
@@ -174,23 +178,83 @@ def test_rig_follows_mesh_transform_and_parent(clean_scene, pkg, sample_files):
     assert obj.matrix_parent_inverse == Matrix.Identity(4)
 
 
-def test_fit_job_runs_in_a_thread_and_cancels(pkg, sample_files):
-    """The worker-thread job behind the interactive (modal, Esc) path."""
+def test_fit_job_runs_in_the_worker_process_and_esc_ends_it(pkg, sample_files):
+    """The job behind the interactive (modal, Esc) path: polled without blocking, it runs in the
+    worker process; Esc (``cancel``) mid-fit ends that process within a second."""
     fit_mod = importlib.import_module(pkg.scan.__name__.rsplit(".", 1)[0] + ".fit")
-    scan = pkg.files.read_scan(sample_files["branching"])
-    job = pkg.ops._FitJob(scan, 11)
-    job.cancel.set()  # Esc before the first progress report
-    job.start_thread()
-    job.thread.join(60)
-    assert not job.thread.is_alive()
-    assert isinstance(job.error, fit_mod.FitCancelled) and job.result is None
     job = pkg.ops._FitJob(pkg.files.read_scan(sample_files["rod"]), 3)
-    job.start_thread()
-    job.thread.join(60)
+    job.start().wait()
     assert job.error is None and job.result.n_links == 3
     assert job.stage == "done" and job.fraction == 1.0
-    seg = pkg.api.cached(job.scan)
-    assert seg is not None and seg.progress is None  # the kept segmentation holds no callback
+    assert job.pid != os.getpid() and pkg.ops.worker.cached(job.scan) is not None
+    pkg.ops.worker.forget()                               # the clustering runs: stages to reach
+    job = pkg.ops._FitJob(pkg.files.read_scan(sample_files["branching"]), 11).start()
+    while not job.poll() and job.stage != "cluster":     # what the modal timer does
+        try:
+            pkg.ops.worker.SESSION.worker.process.wait(0.02)
+        except subprocess.TimeoutExpired:
+            pass
+    proc = pkg.ops.worker.SESSION.worker.process
+    t0 = time.monotonic()
+    job.cancel()                                          # Esc
+    assert proc.poll() is not None and time.monotonic() - t0 < 1.0
+    assert job.poll() and isinstance(job.error, fit_mod.FitCancelled) and job.result is None
+    assert pkg.ops.worker.SESSION.worker is None          # the next job starts a fresh worker
+
+
+def test_the_fit_runs_in_a_worker_process(clean_scene, pkg, sample_files):
+    """The panel's Fit computes in the add-on's worker, not in Blender's process."""
+    obj = import_scan(sample_files["rod"])
+    pkg.ops.worker.LAST_PID = None
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}
+    assert pkg.ops.worker.LAST_PID not in (None, os.getpid())
+    assert pkg.ops.worker.LAST_PID == pkg.ops.worker.SESSION.pid
+    assert obj.artdef.fit_links == 3
+
+
+def _fit_fails_cleanly(pkg, sample_files, match, hook=None, limit=None):
+    """A fit whose worker fails (``hook`` at each progress report; ``limit``: the worker's memory
+    limit for that fit) leaves the scene as it was, reports one error line, and Blender fits again
+    afterwards."""
+    session = pkg.ops.worker.SESSION
+    obj = import_scan(sample_files["branching"])
+    assert bpy.ops.artdef.fit(links=3) == {'FINISHED'}      # a rig to keep
+    before = scene_snapshot()
+    if hook is not None:
+        pkg.ops.PROGRESS_HOOKS.append(hook)
+    session.memory_limit = limit
+    try:
+        with pytest.raises(RuntimeError, match=match) as info:
+            bpy.ops.artdef.fit(links=11)
+    finally:
+        session.memory_limit = None
+        if hook is not None:
+            pkg.ops.PROGRESS_HOOKS.remove(hook)
+    assert "\n" not in str(info.value).strip()
+    assert scene_snapshot() == before and obj.artdef.fit_links == 3
+    assert session.worker is None                            # the failed worker is gone
+    assert bpy.ops.artdef.fit(links=11) == {'FINISHED'}      # Blender goes on
+    assert obj.artdef.fit_links == 11
+
+
+def test_a_worker_killed_mid_fit_leaves_the_scene_and_one_error_line(clean_scene, pkg, sample_files):
+    import signal
+    seen = []
+
+    def kill(stage, fraction):
+        if not seen:                  # at the first report the worker sends
+            seen.append(pkg.ops.worker.SESSION.pid)
+            os.kill(seen[0], signal.SIGKILL)
+        return False
+
+    _fit_fails_cleanly(pkg, sample_files, r"Fit failed: the worker process was killed \(SIGKILL", kill)
+    assert seen and seen[0] != os.getpid()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_AS is enforced on Linux")
+def test_a_worker_over_its_memory_limit_leaves_the_scene_and_one_error_line(clean_scene, pkg, sample_files):
+    _fit_fails_cleanly(pkg, sample_files, r"Fit failed: the worker process ran out of memory "
+                                          r"\(its limit is 16 MB\)", limit=16 * 2**20)
 
 
 def test_fit_validates_the_scan_once(clean_scene, pkg, sample_files, monkeypatch):

@@ -49,9 +49,9 @@ def test_fit_properties_are_the_cores_declaration(pkg):
         assert name in bpy.ops.artdef.fit.get_rna_type().properties and name in st
     # a value the declaration refuses is reported with the setting's label, nothing is made
     assert pkg.ops.options_from(type("S", (), dict(
-        mode='GLOBAL', motion='LSQ', p_max=0.0, max_links=4, memory_budget=1.0, reduce='ON',
+        mode='GLOBAL', motion='LSQ', p_max=0.0, max_links=4, memory_budget=1.0, jobs=1, reduce='ON',
         strategy='PAPER', skin='SEAM'))()) == options.FitOptions(
-        motion="lsq", max_links=4, memory_budget=1.0, reduce="on", strategy="paper", skin="seam")
+        motion="lsq", max_links=4, memory_budget=1.0, jobs=1, reduce="on", strategy="paper", skin="seam")
 
 
 def test_fit_skin_option(clean_scene, pkg, sample_files):
@@ -127,13 +127,13 @@ def test_memory_budget_switches_to_reduced_method_and_says_so(clean_scene, pkg, 
     out = capfd.readouterr()
     assert "reduced method" in out.out + out.err  # the operator's INFO reports
     seg = pkg.ops.cached_segmentation(obj)
-    assert seg is not full_seg and seg.reduced  # the cache follows the settings
+    assert seg != full_seg and seg.reduced  # the cache follows the settings
     labels = [e[1] for e in draw_panel() if e[0] == "label"]
     assert any("reduced method" in l for l in labels)                      # the fit's notes
     assert any(l.startswith("reduced method on about ") for l in labels)   # the estimate
     # Preview Links uses the object's settings: the cached reduced segmenter
     assert bpy.ops.artdef.preview_links(links=11) == {'FINISHED'}
-    assert pkg.ops.cached_segmentation(obj) is seg
+    assert pkg.ops.cached_segmentation(obj) == seg
     # Reduced Method Off ignores the budget; back on the default budget: no note
     assert bpy.ops.artdef.fit(links=11, reduce='OFF') == {'FINISHED'}
     assert pkg.ops.last_result(obj).notes == [] and not pkg.ops.cached_segmentation(obj).reduced

@@ -7,6 +7,8 @@ Everything goes through ``bpy.ops.artdef.*`` of the extension installed from the
 the core used for reference numbers is the installed copy too.
 """
 
+import os
+
 import numpy as np
 import pytest
 
@@ -15,17 +17,16 @@ bpy = pytest.importorskip("bpy")
 from ophelpers import import_scan
 
 
-def test_preview_segments_in_a_worker_thread_and_cancels(clean_scene, pkg, sample_files):
-    """The interactive Preview Links runs its first clustering off the main thread:
-    the worker gives the same links as the synchronous path, and Esc (a cancel) leaves no
-    cached clustering and no colours behind."""
+def test_preview_segments_in_the_worker_process_and_cancels(clean_scene, pkg, sample_files):
+    """Preview Links runs its first clustering in the worker process: the worker gives the same
+    links as the core in this process, and a cancel leaves no kept clustering and no colours."""
     obj = import_scan(sample_files["branching"])
-    pkg.api.clear_cache()
+    pkg.ops.worker.forget()
     job = pkg.ops._preview_job(obj, 11)
     assert not job.cached
-    job.start_thread()
-    job.thread.join(timeout=600)
+    job.start().wait()
     assert job.error is None and job.labels is not None
+    assert job.pid is not None and job.pid != os.getpid()       # computed in the worker process
     ref = pkg.ops._fit.Segmenter(pkg.io.read_scan(obj).scan).labels(11)
     assert len(np.unique(job.labels)) == 11 and np.array_equal(job.labels, ref)
     stages = []
@@ -34,12 +35,11 @@ def test_preview_segments_in_a_worker_thread_and_cancels(clean_scene, pkg, sampl
         stages.append(stage)
         return True  # cancel at the first report
 
-    pkg.api.clear_cache()  # the first preview kept its clustering: cancel a fresh one
+    pkg.ops.worker.forget()  # the first preview kept its clustering: cancel a fresh one
     pkg.ops.PROGRESS_HOOKS.append(hook)
     try:
         job = pkg.ops._preview_job(obj, 11)
-        job.start_thread()
-        job.thread.join(timeout=600)
+        job.start().wait()
     finally:
         pkg.ops.PROGRESS_HOOKS.remove(hook)
     assert stages and isinstance(job.error, pkg.ops._fit.FitCancelled)
@@ -49,7 +49,7 @@ def test_preview_segments_in_a_worker_thread_and_cancels(clean_scene, pkg, sampl
 
 def test_preview_links_colours_faces_from_cached_clustering(clean_scene, pkg, sample_files):
     obj = import_scan(sample_files["branching"])
-    pkg.api.clear_cache()
+    pkg.ops.worker.forget()
     assert bpy.ops.artdef.preview_links(links=11) == {'FINISHED'}
     seg = pkg.ops.cached_segmentation(obj)
     assert seg is not None
@@ -66,9 +66,9 @@ def test_preview_links_colours_faces_from_cached_clustering(clean_scene, pkg, sa
     assert bpy.ops.artdef.preview_links(links=5) == {'FINISHED'}
     attr = obj.data.color_attributes["artdef_links"]
     assert n_colours() == 5
-    assert pkg.ops.cached_segmentation(obj) is seg  # distances not recomputed
+    assert pkg.ops.cached_segmentation(obj) == seg  # distances not recomputed
     # the fit reuses the cached clustering too, and colours by its links
     assert bpy.ops.artdef.fit(links=11) == {'FINISHED'}
-    assert pkg.ops.cached_segmentation(obj) is seg
+    assert pkg.ops.cached_segmentation(obj) == seg
     attr = obj.data.color_attributes["artdef_links"]
     assert n_colours() == 11

@@ -155,3 +155,22 @@ def test_a_call_over_the_memory_limit_is_one_line_and_the_parent_is_unharmed():
 def test_object_arrays_are_refused_before_the_child_sees_them():
     with worker() as w, pytest.raises(ValueError, match="Python objects"):
         w.submit("worker_calls:echo", {"a": np.array([{}, None], dtype=object)})
+
+
+def test_a_pool_spreads_tasks_over_its_processes_on_one_shared_array():
+    a = np.random.default_rng(5).random((1000, 7))
+    with procs.Pool(2, paths=[HERE]) as pool:
+        path = pool.share(a)
+        tasks = [{"a": path, "rows": [s, s + 100]} for s in range(0, 1000, 100)]
+        ends = []
+        out = pool.map("worker_calls:row_sums", tasks, on_result=lambda i, r: ends.append(i))
+        pids = {v["pid"] for v, _ in out}
+        assert len(pool.workers) == 2 and pids <= {w.pid for w in pool.workers}
+        again = pool.map("worker_calls:row_sums", tasks[:2])
+        assert {v["pid"] for v, _ in again} <= pids          # the same processes: started once
+        with pytest.raises(procs.WorkerError, match="negative row"):
+            pool.map("worker_calls:row_sums", [{"a": path, "rows": [-1, 0]}])
+        assert pool.workers == [] and pool.folder is None      # a failed map closes the pool
+    assert sorted(ends) == list(range(10))
+    assert np.array_equal(np.concatenate([r["sums"] for _, r in out]), a.sum(axis=1))
+    assert os.getpid() not in pids
