@@ -4,7 +4,6 @@ Graphs and geodesic reaches are remembered across a fit's many decompositions (:
 """
 from __future__ import annotations
 
-import threading
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -67,23 +66,19 @@ def _mesh_graph(key: bytes, vertices: np.ndarray, faces: np.ndarray):
 
 
 class _Remembered:
-    """Values by key, the oldest forgotten beyond ``size``; safe to share between the threads the
-    trials of a round step on."""
+    """Values by key, the oldest forgotten beyond ``size``."""
 
     def __init__(self, size: int):
         self.size = size
         self._d: dict = {}
-        self._lock = threading.Lock()
 
     def get(self, key):
-        with self._lock:
-            return self._d.get(key)
+        return self._d.get(key)
 
     def put(self, key, value):
-        with self._lock:
-            self._d[key] = value
-            while len(self._d) > self.size:
-                self._d.pop(next(iter(self._d)))
+        self._d[key] = value
+        while len(self._d) > self.size:
+            self._d.pop(next(iter(self._d)))
         return value
 
 

@@ -16,7 +16,8 @@ from . import cost as _cost
 from . import merge as _merge
 from . import patches as _patches
 from .blas import single_threaded
-from .metric import worker_count, field_features, rest_geometry
+from .metric import field_features, rest_geometry
+from .parallel import neighbour_stream
 from .result import FitCancelled, report as _report
 from .scan import Scan, ScanError, validate_scan
 from .skinning import field_sample
@@ -49,7 +50,7 @@ class Segmenter:
 
     def __init__(self, scan: Scan, progress=None, refine_seams: bool = True, strategy: str = "auto",
                  reduce: bool | None = None, budget: float = _cost.DEFAULT_BUDGET, max_units: int | None = None):
-        with single_threaded():    # small products on two Python threads (see :func:`fit`)
+        with single_threaded():    # small products (see :func:`pipeline.fit`)
             self._build(scan, progress, refine_seams, strategy, reduce, budget, max_units)
 
     def _build(self, scan, progress, refine_seams, strategy, reduce, budget, max_units):
@@ -129,24 +130,13 @@ class Segmenter:
         clustered = self.clustered
         Pc = len(clustered)
 
-        def neighbours(p):
-            d, z = _patches.neighbour_distances(x0, fields[p], self.faces, rest, self.tri_adjacency)
-            weights[p] = 1.0 / z if z > 1e-300 else 0.0
-            return weights[p] * d
-
         def stream():
-            # two fields at a time on two threads (numpy's element-wise work releases the GIL);
-            # cancelling is checked here, on the calling thread
-            from concurrent.futures import ThreadPoolExecutor
-            with ThreadPoolExecutor(min(2, worker_count())) as ex:
-                pending = []
-                for i, p in enumerate(clustered):
-                    pending.append(ex.submit(neighbours, p))
-                    if len(pending) >= 2:
-                        _report(self.progress, "features", 0.5 * (i - 1) / Pc)
-                        yield pending.pop(0).result()
-                for fut in pending:
-                    yield fut.result()
+            # one field at a time, or a few in flight on the fit's pool (:mod:`parallel`)
+            fields_d = neighbour_stream(x0, fields, self.faces, rest, self.tri_adjacency, clustered,
+                                        lambda i: _report(self.progress, "features", 0.5 * i / Pc))
+            for p, (d, z) in zip(clustered, fields_d):
+                weights[p] = 1.0 / z if z > 1e-300 else 0.0
+                yield weights[p] * d
 
         centroids = x0[self.faces].mean(axis=1)
         size = max(2, int(np.ceil(4.0 * Tv / max_units)))

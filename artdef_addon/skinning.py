@@ -8,9 +8,7 @@ also importable from here.
 """
 from __future__ import annotations
 
-import contextlib
 import functools
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -126,8 +124,10 @@ def _pair_quadratic(xh: np.ndarray, G: np.ndarray, cols: np.ndarray) -> np.ndarr
 
 #: vertices per block of the refined skin's weight solve (bounded memory at scale)
 SOLVE_BLOCK = 32768
-#: weight solves of at least this many vertices run in halves on two threads (the full-mesh skins)
-THREAD_ROWS = 4096
+#: weight solves of at least this many vertices go to the fit's pool in vertex blocks (the full-mesh
+#: skins of large scans): below it a pool worker's start-up (about 0.6 s of CPU) costs more than the
+#: solve (CesiumMan's 3k vertices: tens of ms)
+POOL_ROWS = 100_000
 
 #: a vertex's candidate links: the ones whose own motion explains it best, among which its (at most
 #: max_influences) skin links are chosen (see :func:`refined_weights`)
@@ -194,24 +194,23 @@ def _refine(vertices, fields, faces, labels, R, t, max_influences=4, rings=3, gr
         ``row_err``; returns their convex optimum with ``free_out``, else None."""
         s, e = se
         Qb = Q[s:e] if details else _pair_quadratic(xh[s:e], G, cols[s:e])
-        wb = simplex_least_squares(Qb, q[s:e], valid[s:e], max_support=max_influences,
-                                   w0=None if w0 is None else w0[s:e], convex=free_out is not None)
-        wf = None
-        if free_out is not None:
-            wb, wf = wb
-        wb[wb < 1e-6] = 0.0
-        wb /= wb.sum(axis=1, keepdims=True)
+        wb, wf, row_err[s:e] = solve_rows(Qb, q[s:e], valid[s:e], None if w0 is None else w0[s:e],
+                                          xx[s:e], max_influences, free_out is not None)
         wc[s:e] = wb
-        row_err[s:e] = np.einsum("na,nab,nb->n", wb, Qb, wb) - 2 * np.einsum("na,na->n", q[s:e], wb) + xx[s:e]
         return wf
 
-    # big solves in halves on two threads (the rows are independent: the same weights, the error to round-off)
-    threads = 2 if not details and N >= THREAD_ROWS else 1
-    part = min(block, -(-N // threads))
-    parts = [(s, min(N, s + part)) for s in range(0, N, part)]
-    with stepping(threads, len(parts)) as each:
-        convex = each(solve, parts)
-    total = 0.0                          # summed a SOLVE_BLOCK at a time, as one thread would
+    parts = [(s, min(N, s + block)) for s in range(0, N, block)]
+    from .parallel import weight_blocks
+    pooled = None if details or N < POOL_ROWS else weight_blocks(
+        xh, G, cols, q, valid, w0, xx, max_influences, free_out is not None, parts)
+    if pooled is None:
+        convex = [solve(se) for se in parts]
+    else:
+        convex = []
+        for (s, e), (wb, wf, err_b) in zip(parts, pooled):
+            wc[s:e], row_err[s:e] = wb, err_b
+            convex.append(wf)
+    total = 0.0                          # summed a SOLVE_BLOCK at a time
     for s in range(0, N, block):
         total += float(np.sum(row_err[s:min(N, s + block)]))
     np.put_along_axis(out, cols, wc, axis=1)
@@ -359,34 +358,28 @@ def alternate_scored(vertices, fields, faces, labels, R, t, iterations=30, tol=1
     return run.result()
 
 
-@contextlib.contextmanager
-def stepping(threads: int, n: int):
-    """A function ``each(fn, items)`` that calls ``fn`` on every item and returns the results in
-    order: on ``threads`` threads where ``threads`` and the ``n`` runs stepped are above one (numpy
-    releases the GIL in most of a decomposition round), else in turn. The threads end with the
-    ``with`` block."""
-    from .metric import worker_count
-    threads = min(threads, worker_count())          # at most one per core the process may use
-    pool = ThreadPoolExecutor(threads) if threads > 1 and n > 1 else None
-
-    def each(fn, items):
-        return [fn(a) for a in items] if pool is None else list(pool.map(fn, items))
-    try:
-        yield each
-    finally:
-        if pool is not None:
-            pool.shutdown()
+def solve_rows(Qb, q, valid, w0, xx, max_influences, convex):
+    """One vertex block of :func:`_refine`'s weight solve: ``(weights (n, m), convex optimum or
+    None, squared errors (n,))`` from the block's normal equations ``Qb (n, m, m)``, ``q (n, m)``,
+    ``xx (n,)`` (rows are independent: any split into blocks gives the same rows)."""
+    wb = simplex_least_squares(Qb, q, valid, max_support=max_influences, w0=w0, convex=convex)
+    wf = None
+    if convex:
+        wb, wf = wb
+    wb[wb < 1e-6] = 0.0
+    wb /= wb.sum(axis=1, keepdims=True)
+    err = np.einsum("na,nab,nb->n", wb, Qb, wb) - 2 * np.einsum("na,na->n", q, wb) + xx
+    return wb, wf, err
 
 
 class Alternation:
     """One skin decomposition (:func:`alternate_scored`) advanced a round at a time, so that several
     of them — the split trials of a round (:func:`splits.split_links`) — can run in lockstep, be
-    compared round by round and stepped on two threads. :meth:`start` solves the weights for the
+    compared round by round. :meth:`start` solves the weights for the
     starting motions (round 0); each :meth:`step` updates the motions and then the weights (one
     round); ``finished`` is set once the rounds are used up, the error falls by less than ``tol``,
     the ``target`` is out of reach, or :meth:`stop` was called. ``e`` is the current error,
-    ``rounds`` the rounds done. Only numpy work on the run's own arrays: separate runs may step
-    on separate threads."""
+    ``rounds`` the rounds done."""
 
     def __init__(self, vertices, fields, faces, labels, R, t, iterations=30, tol=1e-4, radius=SKIN_RADIUS,
                  details=False, target=None, far=None, w_init=None, rows=None, **kw):
