@@ -361,6 +361,8 @@ def _cmd_fit(a) -> int:
         _check(R["p_max"], "--p-max", a.p_max)
     if a.memory_budget is not None:
         _check(R["memory_budget"], "--memory-budget", a.memory_budget)
+    if a.jobs is not None:
+        _check(R["jobs"], "--jobs", a.jobs)
     given = {name: getattr(a, name) for name in FitOptions.declaration() if getattr(a, name) is not None}
     try:
         options = FitOptions(**given)          # the one check of the settings
