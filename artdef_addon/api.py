@@ -59,6 +59,7 @@ def plan(triangles: int, fields: int, vertices: int, kind: str, options: FitOpti
     ``auto=`` of :func:`cost.estimate` (the whole fit's time for that count or the search)."""
     o = (options or FitOptions()).resolved(kind)
     budget = o.budget_bytes
+    price.setdefault("jobs", o.processes)
     if price.get("auto"):
         price.setdefault("max_links", min(o.max_links, triangles))   # the search's range
     if o.reduce == "off":

@@ -182,15 +182,24 @@ SKIN_BYTES_PER_VERTEX_LINK = 48.0
 SOLVE_BYTES_PER_VERTEX = 8.0 * 9 * 9 * 6
 
 
-def stream_bytes(triangles: int, fields: int) -> float:
-    """Peak bytes of the reduced method's patch stream (``fit.Segmenter``): what every triangle keeps
-    of the fields in flight (two at a time where two cores are free, :func:`metric.worker_count`),
-    and a block of each one's temporaries (:func:`patches.neighbour_distances`)."""
-    from .metric import worker_count
+#: what a pool worker holds before its first task (Python, numpy, scipy, the core imported)
+POOL_PROCESS_BYTES = 90 * 2 ** 20
+
+
+def stream_bytes(triangles: int, fields: int, jobs: int = 1) -> float:
+    """Peak bytes of the reduced method's patch stream (``segmenter.Segmenter``), summed over the
+    fit's processes: what every triangle keeps of the field in flight and a block of its
+    temporaries (:func:`patches.neighbour_distances`); one field in this process, or with a pool
+    (``jobs`` > 1, from :data:`parallel.POOL_TRIANGLES`) one per worker, each worker's own
+    :data:`POOL_PROCESS_BYTES` added."""
+    from .parallel import POOL_TRIANGLES
     from .patches import STREAM_BLOCK
-    in_flight = min(2, worker_count(), max(fields, 1))
-    return in_flight * (STREAM_BYTES_PER_TRIANGLE_FIELD * triangles
-                        + STREAM_BYTES_PER_BLOCK_TRIANGLE * min(triangles, STREAM_BLOCK))
+    one = (STREAM_BYTES_PER_TRIANGLE_FIELD * triangles
+           + STREAM_BYTES_PER_BLOCK_TRIANGLE * min(triangles, STREAM_BLOCK))
+    if jobs <= 1 or triangles < POOL_TRIANGLES or fields < 2:
+        return one
+    workers = min(jobs, fields)
+    return workers * (one + POOL_PROCESS_BYTES)
 
 
 def articulation_cost(vertices: int, fields: int, links: int) -> tuple[float, float]:
@@ -212,13 +221,14 @@ def articulation_cost(vertices: int, fields: int, links: int) -> tuple[float, fl
 
 def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed",
              budget: float = DEFAULT_BUDGET, units: int | None = None, links: int | None = None,
-             auto: bool = False, max_links: int | None = None) -> Estimate:
+             auto: bool = False, max_links: int | None = None, jobs: int = 1) -> Estimate:
     """Estimate a fit; ``reduced`` says whether the full method would exceed ``budget`` bytes
     (or is chosen for speed, :func:`faster_reduced`). Tracked scans (``strategy`` "summed") add
     the merge to ``links`` links and the articulation stage (default :data:`DEFAULT_LINKS`);
     ``auto`` prices a ``--links auto`` search up to ``max_links`` (default 30) instead: the tree's
     error curve, :data:`AUTO_WHOLE_FITS` fits at :data:`AUTO_LINKS_SHARE` of ``max_links`` links and
-    :data:`AUTO_GROWN_LINKS` grown links (the fits it keeps are in the memory)."""
+    :data:`AUTO_GROWN_LINKS` grown links (the fits it keeps are in the memory). ``jobs``: the fit's
+    processes (the memory is summed over them)."""
     full = full_memory(triangles, fields, vertices)
     reduced = full > budget or faster_reduced(triangles, fields, budget)
     u = triangles if not reduced else (units or min(triangles, reduced_units(budget, fields)))
@@ -228,7 +238,7 @@ def estimate(triangles: int, fields: int, vertices: int, strategy: str = "summed
     seconds = 2 * pairs * seg_fields / PAIRS_PER_SECOND + linkages * pairs * LINKAGE_SECONDS_PER_ENTRY
     if reduced:
         seconds += triangles * seg_fields * REDUCED_SECONDS_PER_TRIANGLE_FIELD  # streamed features, neighbour distances
-        mem = 2 * 8.0 * pairs + FEATURE_BYTES * u * seg_fields + stream_bytes(triangles, seg_fields) \
+        mem = 2 * 8.0 * pairs + FEATURE_BYTES * u * seg_fields + stream_bytes(triangles, seg_fields, jobs) \
             + 8.0 * 3 * vertices * fields * 2
     else:
         mem = full

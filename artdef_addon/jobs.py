@@ -28,7 +28,7 @@ from .scan import Scan
 LIMIT_FACTOR = 2.0
 LIMIT_SLACK = 0.5 * 2**30
 _SCAN_ARRAYS = ("vertices", "faces", "greens", "displacements", "load_vertices", "support_vertices")
-_CORE = procs._CORE
+CORE = procs.CORE
 
 
 def scan_message(scan: Scan):
@@ -128,7 +128,7 @@ class Session:
         if w is not None and (not w.alive() or w.memory_limit != limit):
             self.close()
         if self.worker is None:
-            self.worker = procs.Worker(memory_limit=limit, preload=[f"{_CORE}.api"],
+            self.worker = procs.Worker(memory_limit=limit, preload=[f"{CORE}.api"],
                                        name="artdef-fit").start()
         return self.worker
 
@@ -137,7 +137,7 @@ class Session:
         options = options or FitOptions()
         arrays, values = scan_message(scan)
         values.update(options=options.as_dict(), links=links)
-        self.call = self._worker(options).submit(f"{_CORE}.jobs:{function}", arrays, values)
+        self.call = self._worker(options).submit(f"{CORE}.jobs:{function}", arrays, values)
         return self.call
 
     def outcome(self, call: procs.Call):

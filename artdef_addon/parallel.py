@@ -12,7 +12,7 @@ import numpy as np
 from . import procs
 from .metric import RestGeometry
 
-_CORE = procs._CORE
+CORE = procs.CORE
 
 #: the per-field neighbour distances go to the pool from this many triangles: a pool worker's
 #: start-up (importing numpy, scipy and the core) costs about 0.6 s of CPU, about what one field's
@@ -38,7 +38,7 @@ def neighbour_stream(x0, fields, faces, rest: RestGeometry, pairs, which, progre
              (("x0", x0), ("fields", fields), ("faces", faces), ("pairs", pairs), ("m0", rest.m0),
               ("R0", rest.R0), ("c0", rest.c0), ("d0", rest.d0), ("s0", rest.s0))}
     tasks = [{"p": int(p), **paths} for p in which]
-    for i, (values, arrays) in enumerate(pool.imap(f"{_CORE}.parallel:neighbour_task", tasks)):
+    for i, (values, arrays) in enumerate(pool.imap(f"{CORE}.parallel:neighbour_task", tasks)):
         if progress is not None:
             progress(i)
         yield arrays["d"], values["z"]
@@ -57,7 +57,8 @@ def neighbour_task(arrays, params, report):
 # ------------------------------------------------------------ the refined skin's weight solve
 
 def weight_blocks(xh, G, cols, q, valid, w0, xx, max_influences, convex, parts):
-    """:func:`skinning.solve_rows` of each vertex block ``(s, e)`` of ``parts`` on the fit's pool:
+    """:func:`skinning.solve_rows` of each vertex block ``(s, e)`` of ``parts`` on the fit's pool
+    (the child's half: :func:`skinning.weight_task`):
     a list of ``(weights, convex optimum or None, errors)`` in block order, or None without a pool
     (the caller solves the blocks itself: the same rows, the same numbers)."""
     pool = procs.current()
@@ -70,19 +71,6 @@ def weight_blocks(xh, G, cols, q, valid, w0, xx, max_influences, convex, parts):
     tasks = [{"rows": [int(s), int(e)], "max_influences": int(max_influences), "convex": bool(convex),
               **paths} for s, e in parts]
     out = []
-    for _, arrays in pool.imap(f"{_CORE}.parallel:weight_task", tasks):
+    for _, arrays in pool.imap(f"{CORE}.skinning:weight_task", tasks):
         out.append((arrays["w"], arrays.get("free"), arrays["err"]))
     return out
-
-
-def weight_task(arrays, params, report):
-    from .skinning import _pair_quadratic, solve_rows
-    sh = procs.shared
-    s, e = params["rows"]
-    cols = np.asarray(sh(params["cols"])[s:e])
-    Qb = _pair_quadratic(np.asarray(sh(params["xh"])[s:e]), np.asarray(sh(params["G"])), cols)
-    w0 = np.asarray(sh(params["w0"])[s:e]) if "w0" in params else None
-    wb, wf, err = solve_rows(Qb, np.asarray(sh(params["q"])[s:e]), np.asarray(sh(params["valid"])[s:e]),
-                             w0, np.asarray(sh(params["xx"])[s:e]), params["max_influences"],
-                             params["convex"])
-    return {}, {"w": wb, "err": err, **({} if wf is None else {"free": wf})}

@@ -52,7 +52,7 @@ PROGRESS_EVERY = 0.05
 KILL_WAIT = 1.0
 #: the core package as the child imports it: top-level, also where this process knows it as a
 #: sub-package (``bl_ext.user_default.artdef.artdef_addon`` inside Blender)
-_CORE = os.path.basename(os.path.dirname(os.path.abspath(__file__)))
+CORE = os.path.basename(os.path.dirname(os.path.abspath(__file__)))
 
 
 class WorkerError(Exception):
@@ -254,7 +254,7 @@ class Worker:
             kw["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP
         try:
             self.process = subprocess.Popen(
-                self.interpreter + ["-m", f"{_CORE}.procs", self.folder], stdin=subprocess.PIPE,
+                self.interpreter + ["-m", f"{CORE}.procs", self.folder], stdin=subprocess.PIPE,
                 stdout=self._log, stderr=subprocess.STDOUT, cwd=self.folder, env=env, **kw)
         except BaseException:
             self.close()
@@ -511,7 +511,7 @@ class pooled:
     pool starts on first use and ends with the block."""
 
     def __init__(self, jobs: int, memory_limit: float | None = None):
-        self.pool = Pool(jobs, memory_limit, preload=[f"{_CORE}.api"]) if jobs > 1 else None
+        self.pool = Pool(jobs, memory_limit, preload=[f"{CORE}.api"]) if jobs > 1 else None
 
     def __enter__(self):
         _CURRENT.append(self.pool)

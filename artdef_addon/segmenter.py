@@ -15,6 +15,7 @@ from . import clustering
 from . import cost as _cost
 from . import merge as _merge
 from . import patches as _patches
+from . import procs as _procs
 from .blas import single_threaded
 from .metric import field_features, rest_geometry
 from .parallel import neighbour_stream
@@ -90,7 +91,9 @@ class Segmenter:
             self.clustered = field_sample(fields, SEGMENT_FIELDS, rows=self.probe)
         self.tri_adjacency = clustering.face_adjacency(self.faces)
         Tv = len(self.valid)
-        est = _cost.estimate(Tv, scan.n_fields, scan.n_vertices, strategy, budget)
+        pool = _procs.current()
+        est = _cost.estimate(Tv, scan.n_fields, scan.n_vertices, strategy, budget,
+                             jobs=1 if pool is None else pool.jobs)
         self.estimate = est
         if reduce is None:
             reduce = est.reduced

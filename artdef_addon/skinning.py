@@ -372,6 +372,19 @@ def solve_rows(Qb, q, valid, w0, xx, max_influences, convex):
     return wb, wf, err
 
 
+def weight_task(arrays, params, report):
+    """In a pool's worker: :func:`solve_rows` of one vertex block (:func:`parallel.weight_blocks`)."""
+    from .procs import shared as sh
+    s, e = params["rows"]
+    cols = np.asarray(sh(params["cols"])[s:e])
+    Qb = _pair_quadratic(np.asarray(sh(params["xh"])[s:e]), np.asarray(sh(params["G"])), cols)
+    w0 = np.asarray(sh(params["w0"])[s:e]) if "w0" in params else None
+    wb, wf, err = solve_rows(Qb, np.asarray(sh(params["q"])[s:e]), np.asarray(sh(params["valid"])[s:e]),
+                             w0, np.asarray(sh(params["xx"])[s:e]), params["max_influences"],
+                             params["convex"])
+    return {}, {"w": wb, "err": err, **({} if wf is None else {"free": wf})}
+
+
 class Alternation:
     """One skin decomposition (:func:`alternate_scored`) advanced a round at a time, so that several
     of them — the split trials of a round (:func:`splits.split_links`) — can run in lockstep, be

@@ -164,7 +164,7 @@ def test_cli_checks_and_fitoptions_share_the_declared_bounds():
     """Each numeric setting's bounds are declared once: the command line's check
     (``Option.range``) and FitOptions accept and refuse the same values at and around them."""
     numeric = {n: o for n, (_, o) in FitOptions.declaration().items() if not o.choices}
-    assert set(numeric) == {"p_max", "max_links", "memory_budget"}
+    assert set(numeric) == {"p_max", "max_links", "memory_budget", "jobs"}
     for name, opt in numeric.items():
         step = 1 if opt.type is int else 1e-9
         probes = [b + d for b in (opt.min, opt.max) if b is not None for d in (-step, 0, step)]
@@ -191,7 +191,8 @@ def test_options_are_frozen_and_declare_everything():
     with pytest.raises(Exception):
         o.mode = "pseudo"
     decl = FitOptions.declaration()
-    assert list(decl) == ["mode", "motion", "p_max", "max_links", "memory_budget", "reduce", "strategy", "skin"]
+    assert list(decl) == ["mode", "motion", "p_max", "max_links", "memory_budget", "jobs", "reduce", "strategy",
+                          "skin"]
     for name, (default, opt) in decl.items():
         assert opt.label and opt.description and getattr(o, name) == default
         assert not opt.choices or default in opt.values
