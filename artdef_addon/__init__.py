@@ -34,8 +34,8 @@ if _sys.argv[:1] == ["-m"]:
     except ValueError:      # not the main thread
         pass
 
-from . import fit, samples, scan
-from .api import load_scan, segment
+from . import samples, scan
+from .api import fit, load_scan, segment
 from .result import FitCancelled, FitResult
 from .options import FitOptions, OptionsError
 from .scan import Scan, ScanError

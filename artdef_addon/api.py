@@ -16,15 +16,12 @@ merged). In Blender the cache lives in the add-on's worker process (:mod:`jobs`)
 from __future__ import annotations
 
 import hashlib
-import sys
 import time
-import types
 from collections import OrderedDict
 
 import numpy as np
 
 from . import cost as _cost
-from . import fit as _fit
 from . import linkcount as _linkcount
 from . import pipeline as _pipeline
 from . import procs as _procs
@@ -186,8 +183,7 @@ def _fit_pooled(scan, links, o: FitOptions, progress):
                 result.p_max = o.p_max
                 result.timings = _search_timings(search, result.timings, 0.0)
         if result is None:
-            result = _pipeline.fit(scan, links, mode=o.mode, motion=o.motion, p_max=o.p_max,
-                              progress=progress, segmenter=seg, skin=o.skin)
+            result = _pipeline.fit(scan, links, o, progress, segmenter=seg)
             if auto:
                 result.timings = _search_timings(search, result.timings, result.timings.get("total", 0.0))
         result.link_reason = reason
@@ -237,15 +233,3 @@ def cached(scan: Scan, options: FitOptions | None = None):
     o = o.resolved(scan.kind)
     est, _ = plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind, o)
     return _SEGMENTERS.get(_key(scan, o, est.reduced))
-
-
-class _FitModule(types.ModuleType):
-    """``artdef_addon.fit`` is the module of the fit's stages (:class:`Segmenter`,
-    :class:`FitResult`) and, called, the public :func:`fit` above: ``artdef_addon.fit(scan,
-    links="auto")`` — one name for scripts, without renaming a module other code imports."""
-
-    def __call__(self, scan, links, options=None, progress=None, **overrides):
-        return fit(scan, links, options, progress, **overrides)
-
-
-sys.modules[_fit.__name__].__class__ = _FitModule

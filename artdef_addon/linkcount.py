@@ -27,18 +27,18 @@ set.
 Whole fits, upward (tracked scans without a fixed ground). The re-cut tree is cheap but a poor
 segmentation for short, blended bones, so its curve flattens before they all have a link: it
 undershoots on rigs with fingers and tail segments. The error of the whole fit (link swaps and
-refined skin, :func:`fit.fit`) instead drops to the data's floor once every bone has its link. So
+refined skin, :func:`pipeline.fit`) instead drops to the data's floor once every bone has its link. So
 from the tree's choice k grows by the same slope rule on the whole fits' errors with
 s = ``WHOLE_FIT_SLOPE`` (the scan's segmenter reused). It only adds links; a scan with support
 vertices keeps the tree's choice (the fit's skin has no ground candidate, so a link would be
 spent on the ground seam). The whole fits are spared where cheaper work gives the same decision
 (:func:`_grown_upward`): each count is first fitted up to its split stage (:func:`partial_fit`,
-finished with ``fit.fit(resume=...)`` only if it may be chosen), and the counts ahead are priced
+finished with ``pipeline.fit(resume=...)`` only if it may be chosen), and the counts ahead are priced
 by links grown one at a time on it (:func:`grow_link`, Dem Bones' way of adding a bone). Grown
 links well below the slope rule's bar pass the count without a whole fit, well above it they stop
 the search; in between whole fits decide, unless the count's own whole fit already has links that
 are not bones (below): the search stops there. A count passed on to this way is fitted from the
-links grown there (:func:`fit.fit_until`'s ``labels``), so its relabelling starts with the missing bone's
+links grown there (:func:`pipeline.fit_until`'s ``labels``), so its relabelling starts with the missing bone's
 link in place. The chosen count's fit is the one handed back.
 ``benchmarks/results/links_auto.md`` has the counts against the whole-fit rule's.
 
@@ -85,7 +85,7 @@ class LinkChoice:
     reason: str
     tree_links: int = 0      # the re-cut tree's pick, before the whole fits
     upward_links: int = 0    # after the whole fits upward, before links that are not bones are dropped
-    result: object = None    # the whole fit at ``links`` (fit.fit's defaults; a count climbed to from the
+    result: object = None    # the whole fit at ``links`` (pipeline.fit's defaults; a count climbed to from the
     #                          links grown below it: from those, see start_fit), when one was made
     timings: dict = dataclasses.field(default_factory=dict)   # seconds: curve, upward, drop
     whole_errors: dict = dataclasses.field(default_factory=dict)   # {count: whole-fit error %} upward
@@ -98,7 +98,7 @@ class LinkChoice:
     work: dict = dataclasses.field(default_factory=dict)
 
     def reusable(self, mode: str = "global", motion: str = "robust", skin: str | None = "auto"):
-        """The chooser's own fit at the chosen count if it is the kind of fit ``fit.fit(scan, links,
+        """The chooser's own fit at the chosen count if it is the kind of fit ``pipeline.fit(scan, links,
         mode, motion, skin=skin)`` would return (same segmenter; a count climbed to is fitted from
         the links grown below it), else None — so callers need not fit it
         again."""
@@ -115,7 +115,7 @@ class SearchProgress:
     Work is counted in whole fits (:data:`cost.CURVE_FITS_PER_COUNT` a count of the curve, 1 a
     whole fit, :data:`cost.GROW_FITS` a link added to a decomposition); the search plans what it
     knows it will do and extends the plan when it needs more, so the fraction is done / planned,
-    held from falling. ``progress(stage, fraction) -> bool`` as in :func:`fit.fit` (True cancels:
+    held from falling. ``progress(stage, fraction) -> bool`` as in :func:`pipeline.fit` (True cancels:
     :class:`fit.FitCancelled`)."""
 
     def __init__(self, progress, planned: float):
@@ -418,7 +418,7 @@ def _drop_non_bones(seg, k: int, fits: dict, progress=None):
     while k > 1:
         if k not in fits:
             search.plan(1.0)
-            fits[k] = fit(scan, k, segmenter=seg, progress=search.fit_callback())
+            fits[k] = fit(scan, k, None, search.fit_callback(), segmenter=seg)
             search.step(1.0)
         r = fits[k]
         n = int(np.count_nonzero(spurious_links(scan.vertices, scan.faces, r)))
@@ -525,7 +525,7 @@ def _grown_upward(seg, k: int, max_links: int, window: int, search: SearchProgre
             if j not in fits:
                 share = 1.0 - PARTIAL_SHARE if j in partial else 1.0
                 search.plan(share)
-                fits[j] = fit(scan, j, segmenter=seg, progress=search.fit_callback(share), resume=partial.pop(j, None))
+                fits[j] = fit(scan, j, None, search.fit_callback(share), segmenter=seg, resume=partial.pop(j, None))
                 search.step(share)
             e = float(fits[j].articulation_error_percent)
             errors[j] = e if np.isfinite(e) else 0.0   # undefined (one field): nothing to explain
@@ -644,12 +644,12 @@ def known_links(state) -> int:
 
 
 def partial_fit(seg, k: int, progress=None, start=None):
-    """The whole fit (:func:`fit.fit`, its defaults) at ``k`` links run up to, not including, its
+    """The whole fit (:func:`pipeline.fit`, its defaults) at ``k`` links run up to, not including, its
     split stage: ``(state, seconds per stage, error %)``, the error the Karni–Gotsman error of
     the refined skin (weights with the skin's own motions), which the split stage only lowers
     (the whole fit's error is that of its final skin: ``fit.stage_residuals``).
-    ``fit.fit(..., resume=(state, seconds))`` finishes the same fit. ``start``: face labels (T,)
-    of ``k`` links to start from instead of the Segmenter's cut (:func:`fit.fit_until`: a count the
+    ``pipeline.fit(..., resume=(state, seconds))`` finishes the same fit. ``start``: face labels (T,)
+    of ``k`` links to start from instead of the Segmenter's cut (:func:`pipeline.fit_until`: a count the
     search climbed to, from the links grown on the count below)."""
     from .pipeline import fit_until
     scan = seg.scan
@@ -675,7 +675,7 @@ def _whole_fits_upward(seg, k: int, max_links: int, window: int, progress=None, 
             if progress is not None:
                 def report(stage, frac, j=j):
                     return progress("links", min(1.0, (j - start + frac) / span))
-            fits[j] = fit(seg.scan, j, segmenter=seg, progress=report)
+            fits[j] = fit(seg.scan, j, None, report, segmenter=seg)
             e = float(fits[j].articulation_error_percent)
             errors[j] = e if np.isfinite(e) else 0.0   # undefined (one field): nothing to explain
         return errors[j]

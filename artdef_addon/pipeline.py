@@ -26,6 +26,7 @@ import numpy as np
 from . import quality as _quality
 from . import segmenter as _segmenter
 from .blas import single_threaded
+from .options import FitOptions
 from .result import FitResult, report as _report
 from .scan import Scan, ScanError
 from .segmenter import Segmenter, select_fields
@@ -69,21 +70,22 @@ def fit_until(seg: Segmenter, links: int, stage: str, progress=None, labels: np.
     return st, secs
 
 
-def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_max=None,
-        progress=None, segmenter: Segmenter | None = None, strategy: str = "auto",
-        skin: str = "auto", resume=None) -> FitResult:
+def fit(scan: Scan, links: int, options: FitOptions | None = None, progress=None,
+        segmenter: Segmenter | None = None, resume=None) -> FitResult:
     """Fit an articulated deformable model to ``scan`` with ``links`` links (paper §5–§7): the
     :data:`STAGES` in order (``result.timings``: seconds per stage, the segment stage as its
-    parts features, cluster and merge).
+    parts features, cluster and merge). The pipeline behind :func:`artdef_addon.fit`, which checks
+    the scan and the options and keeps the segmentation; scripts call that one.
 
-    ``strategy`` chooses how fields are combined (see :class:`Segmenter`); it is ignored when a
-    ready ``segmenter`` is passed. ``skin`` is ``"seam"`` (the paper's linear blend across each
-    seam's one-ring) or ``"refined"`` (per-vertex convex weights, at most 4 influences, fitted by
-    least squares over all fields to the rig's link motions); ``"auto"`` refines for tracked
-    scans and keeps seam weights for Green's scans.
-
-    The settings are taken as given: they are checked where they enter, by :class:`FitOptions`
-    in :func:`artdef_addon.fit` (which also refuses ``mode="pseudo"`` on a tracked scan).
+    ``options``: a :class:`FitOptions` (default: all defaults), taken as given (checked where it
+    entered) and resolved for the scan's kind here. Its ``strategy`` chooses how fields are
+    combined (see :class:`Segmenter`) and is ignored when a ready ``segmenter`` is passed; its
+    ``skin`` is ``"seam"`` (the paper's linear blend across each seam's one-ring) or ``"refined"``
+    (per-vertex convex weights, at most 4 influences, fitted by least squares over all fields to
+    the rig's link motions), ``"auto"`` refining for tracked scans and keeping seam weights for
+    Green's scans; ``mode``, ``motion`` and ``p_max`` are the model's. ``max_links``,
+    ``memory_budget`` and ``reduce`` belong to :func:`artdef_addon.fit` (the link-count search and
+    the segmenter it makes).
 
     Runs with one OpenBLAS thread (:func:`blas.single_threaded`): its products are small, and a
     second BLAS thread only spins — measured on the 2-core machine, quiet: the same wall time at
@@ -95,22 +97,22 @@ def fit(scan: Scan, links: int, mode: str = "global", motion: str = "robust", p_
     ``timings`` (merge, total) include what :func:`fit_until` spent on the state.
     """
     with single_threaded():
-        return _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin, resume)
+        return _fit(scan, links, FitOptions() if options is None else options, progress, segmenter, resume)
 
 
-def _fit(scan, links, mode, motion, p_max, progress, segmenter, strategy, skin, resume=None) -> FitResult:
+def _fit(scan, links, options, progress, segmenter, resume=None) -> FitResult:
     try:
         links = int(links)
     except (TypeError, ValueError):
         raise ScanError(f"the number of links must be an integer, got {links!r}") from None
     t_start = time.perf_counter()
-    seg = segmenter if segmenter is not None else _segmenter.Segmenter(scan, progress, strategy=strategy)
+    seg = segmenter if segmenter is not None else _segmenter.Segmenter(scan, progress, strategy=options.strategy)
     seg.progress = progress
     merge_before = seg.timings.get("merge", 0.0)
     scan = seg.scan
     seg._check_k(links)
-    if skin == "auto":
-        skin = "seam" if scan.kind == "greens" else "refined"
+    o = options.resolved(scan.kind)
+    mode, motion, skin, p_max = o.mode, o.motion, o.skin, o.p_max
     if resume is not None:
         state, done = resume
         t_start -= state.spent_total             # the fit's first stages ran in fit_until

@@ -44,7 +44,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 sys.path.insert(0, HERE)
 
-from artdef_addon import fit as F, metric, quality  # noqa: E402
+from artdef_addon import metric, quality  # noqa: E402
+from artdef_addon import pipeline as PL, segmenter as SG, stages as ST  # noqa: E402
+from artdef_addon.options import FitOptions  # noqa: E402
 from generate import branching_scan  # noqa: E402
 from peak import status_kb as _status_kb  # noqa: E402
 
@@ -104,21 +106,15 @@ def dembones_case(scan, bones: int) -> dict:
 
 
 def _fit_option(name: str, value):
-    """``{name: value}`` if this core's fit() takes ``name`` (the skin/weights option is new)."""
-    if value is None:
-        return {}
-    params = inspect.signature(F.fit).parameters
-    for n in (name, "skin", "weights"):
-        if n in params:
-            return {n: value}
-    return {}
+    """``{name: value}`` for the fit's :class:`FitOptions` (nothing when ``value`` is None)."""
+    return {} if value is None else {name: value}
 
 
 def _segmenter_kw(method: str) -> dict:
     """Force the full or the reduced method when the core's Segmenter has ``reduce=``."""
     if method == "auto":
         return {}
-    if "reduce" not in inspect.signature(F.Segmenter.__init__).parameters:
+    if "reduce" not in inspect.signature(SG.Segmenter.__init__).parameters:
         raise SystemExit(f"this core has no reduced method: --method {method} is not available")
     return {"reduce": method == "reduced"}
 
@@ -131,8 +127,8 @@ def run_case(target: int, n_fields: int, strategy: str, skin: str | None, dembon
     t_gen = time.perf_counter() - t0
     rss0 = _status_kb("VmRSS")
     t0 = time.perf_counter()
-    seg = F.Segmenter(scan, strategy=strategy, **_segmenter_kw(method))
-    res = F.fit(scan, truth["n_links"], segmenter=seg, **_fit_option("skin", skin))
+    seg = SG.Segmenter(scan, strategy=strategy, **_segmenter_kw(method))
+    res = PL.fit(scan, truth["n_links"], FitOptions(**_fit_option("skin", skin)), segmenter=seg)
     wall = time.perf_counter() - t0
     peak = _status_kb("VmHWM")
     timings = dict(res.timings)
@@ -217,7 +213,7 @@ def bench_fit(sizes, fields, a):
 
 
 def fit_table(rows) -> str:
-    names = ["features", "cluster", "merge"] + [n for n, _ in F.STAGES if n != "segment"]
+    names = ["features", "cluster", "merge"] + [n for n, _ in ST.STAGES if n != "segment"]
     extra = sorted({k for r in rows for k in r["timings"]} - set(names) - {"total"})
     cols = names + extra
     db = any("db_s" in r for r in rows)

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import glob
-import inspect
 import os
 import platform
 import sys
@@ -48,8 +47,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 
-from artdef_addon import fit as F, model, quality, samples  # noqa: E402
+import artdef_addon  # noqa: E402
+from artdef_addon import model, pipeline as PL, quality, samples, segmenter as SG  # noqa: E402
 from artdef_addon.scan import Scan, ScanError  # noqa: E402
+from artdef_addon.options import FitOptions  # noqa: E402
 
 try:
     from py_dem_bones.portable import _prepare_solver, _read_skinning_result
@@ -87,13 +88,9 @@ def joint_errors(truth: dict, res, diag: float):
 
 # --------------------------------------------------------------------------- methods
 def fit_variants():
-    """The artdef fits to run: (label, fit keyword arguments). With the core's ``skin=`` option both the
-    refined weights (the default for tracked scans) and the paper's seam weights; the first is the main one."""
-    params = inspect.signature(F.fit).parameters
-    for name in ("skin", "weights"):
-        if name in params:
-            return [("artdef refined", {name: "refined"}), ("artdef seam", {name: "seam"})]
-    return [("artdef", {})]
+    """The artdef fits to run: (label, :class:`FitOptions` fields): the refined weights (the default for
+    tracked scans) and the paper's seam weights; the first is the main one."""
+    return [("artdef refined", {"skin": "refined"}), ("artdef seam", {"skin": "seam"})]
 
 
 def run_artdef(scan: Scan, L, kw: dict, segmenter=None):
@@ -101,7 +98,7 @@ def run_artdef(scan: Scan, L, kw: dict, segmenter=None):
     cached by an earlier fit of the same scan) the seconds still count the whole fit: the segmenter's
     own features + cluster time is added."""
     t0 = time.perf_counter()
-    res = F.fit(scan, L, segmenter=segmenter, **kw)
+    res = PL.fit(scan, L, FitOptions(**kw), segmenter=segmenter)
     secs = time.perf_counter() - t0
     if segmenter is not None:
         secs += segmenter.timings.get("features", 0.0) + segmenter.timings.get("cluster", 0.0)
@@ -208,8 +205,8 @@ def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
                 for _ in range(reps):
                     if i == 0:  # the main fit, from scratch; later variants reuse its distances
                         t0, c0 = time.perf_counter(), cpu_seconds()
-                        seg = F.Segmenter(scan)
-                        res = F.fit(scan, L, segmenter=seg, **kw)
+                        seg = SG.Segmenter(scan)
+                        res = PL.fit(scan, L, FitOptions(**kw), segmenter=seg)
                         secs, cpus_i = time.perf_counter() - t0, cpu_seconds() - c0
                         err = kg_error(X, artdef_articulation(res, x0))
                         cpus.append(cpus_i)
@@ -364,7 +361,7 @@ def collapse_test(n_sets, nnz, iters, ari_ok=0.95):
     for s in range(n_sets):
         p = 3 + s % 8
         scan, truth = samples.rod(n_fields=p, seed=s)
-        res = F.fit(scan, 3)
+        res = artdef_addon.fit(scan, 3)
         a_links = len(np.unique(res.face_labels))
         a_ari = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
         row = dict(seed=s, P=p, artdef_links=a_links, artdef_ari=a_ari)
@@ -414,7 +411,7 @@ def auto_samples():
     for name, make in cases:
         scan, truth = make()
         L = int(len(np.unique(truth["face_labels"])))
-        seg = F.Segmenter(scan)
+        seg = SG.Segmenter(scan)
         au = auto_links(seg, L)
         cell = str(au["links"]) if "links" in au else "failed: " + au["error"]
         md.append(f"| {name} | {L} | {cell} | {au.get('seconds', float('nan')):.1f} |")

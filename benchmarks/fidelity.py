@@ -25,7 +25,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 
-from artdef_addon import fit as F, quality, samples  # noqa: E402
+import artdef_addon  # noqa: E402
+from artdef_addon import quality, samples  # noqa: E402
 from artdef_addon.scan import Scan  # noqa: E402
 
 
@@ -33,7 +34,7 @@ def rig_row(name, d, seed):
     poses = samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"], d["gt_parents"], 20, seed=seed)
     scan = Scan(d["vertices"], d["faces"], displacements=poses)
     t0 = time.perf_counter()
-    r = F.fit(scan, len(np.unique(d["gt_face_labels"])))
+    r = artdef_addon.fit(scan, len(np.unique(d["gt_face_labels"])))
     secs = time.perf_counter() - t0
     diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
     bones, err = quality.true_joint_errors(r, d["gt_joints"], d["gt_parents"], d["gt_face_labels"])
@@ -47,7 +48,7 @@ def rig_row(name, d, seed):
 
 
 def sample_row(name, kw, links):
-    r = F.fit(samples.make(name, **kw), links)
+    r = artdef_addon.fit(samples.make(name, **kw), links)
     return (f"| {name} {kw or ''} | {links} | {r.articulation_error_percent:.3g} | {r.rigid_error_percent:.3g} | "
             f"{r.linear_rank}: {r.linear_error_percent:.3g} | "
             f"{r.articulation_error_percent / r.rigid_error_percent * links:.3g} | {r.articulated} |")

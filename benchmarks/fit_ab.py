@@ -42,7 +42,19 @@ def one(repo: str, name: str, links: int | None, fresh: int | None, data: str) -
     """Fit one set with the artdef of ``repo`` in this process; the answers and CPU time as a dict."""
     sys.path.insert(0, os.path.abspath(repo))
     import numpy as np
-    from artdef_addon import fit as F, quality as Q, samples, skinning as SK
+    from artdef_addon import quality as Q, samples, skinning as SK
+    try:
+        from artdef_addon.options import FitOptions
+        from artdef_addon.pipeline import fit as pipeline_fit
+        from artdef_addon.segmenter import Segmenter
+
+        def fit_refined(scan, links):
+            return pipeline_fit(scan, links, FitOptions(skin="refined"), segmenter=Segmenter(scan))
+    except ImportError:         # a core from before the pipeline had its own module (an A/B of commits)
+        from artdef_addon import fit as F
+
+        def fit_refined(scan, links):
+            return F.fit(scan, links, segmenter=F.Segmenter(scan), skin="refined")
     from artdef_addon.scan import Scan
 
     count = dict(solves=0, solve_rows=0, motions=0, motion_rows=0)
@@ -71,7 +83,7 @@ def one(repo: str, name: str, links: int | None, fresh: int | None, data: str) -
         links = len(np.unique(d["gt_face_labels"])) if truth else 10
     scan = Scan(d["vertices"], d["faces"], displacements=U)
     c0, t0 = time.process_time(), time.perf_counter()
-    res = F.fit(scan, links, segmenter=F.Segmenter(scan), skin="refined")
+    res = fit_refined(scan, links)
     out = dict(cpu=time.process_time() - c0, wall=time.perf_counter() - t0, links=links, **count)
     out["kg"] = float(Q.kg_distortion(d["vertices"][None] + U, Q.reproduce(res, d["vertices"])))
     if truth:

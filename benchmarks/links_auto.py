@@ -36,7 +36,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from artdef_addon import api, fit as F, linkcount, samples, scan as S  # noqa: E402
+from artdef_addon import api, linkcount, samples, scan as S  # noqa: E402
+from artdef_addon import pipeline as PL, segmenter as SG  # noqa: E402
 from peak import reset_peak, status_kb  # noqa: E402
 
 
@@ -60,12 +61,12 @@ def row(data: str, name: str, kind: str, verify: bool, seed: int = 1) -> None:
     reset_peak()
     rss = 1024.0 * status_kb("VmRSS")
     t0 = time.perf_counter()
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     c = linkcount.choose_links(seg, max_links=mx)
     dt = time.perf_counter() - t0
     peak = max(1024.0 * status_kb("VmHWM") - rss, 0.0)
     t0 = time.perf_counter()
-    F.fit(scan, L, segmenter=F.Segmenter(scan))
+    PL.fit(scan, L, None, segmenter=SG.Segmenter(scan))
     fixed = time.perf_counter() - t0
     stops = ", ".join(f"{k} {how}" for k, how in c.decisions if how != "continue")
     if verify:
@@ -73,7 +74,7 @@ def row(data: str, name: str, kind: str, verify: bool, seed: int = 1) -> None:
             if how == "grown":
                 j = min(mx, k + 4)
                 bar = min(v for q, v in c.whole_errors.items() if q <= k) * (k / j) ** linkcount.WHOLE_FIT_SLOPE
-                low = min(float(F.fit(scan, i, segmenter=seg).articulation_error_percent) for i in range(k + 1, j + 1))
+                low = min(float(PL.fit(scan, i, None, segmenter=seg).articulation_error_percent) for i in range(k + 1, j + 1))
                 stops += " (whole fits agree)" if low >= bar else f" (WHOLE FITS DISAGREE: {low:.4g} < {bar:.4g})"
     parts = " / ".join(f"{c.timings.get(p, 0.0):.1f}" for p in ("curve", "upward", "drop"))
     work = f"{c.work.get('whole_fits', 0)} / {c.work.get('partial_fits', 0)} / {c.work.get('grown_links', 0)}"

@@ -11,7 +11,6 @@ from bpy.props import EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ..artdef_addon import api as _api
-from ..artdef_addon import fit as _fit  # noqa: F401  (kept importable from here)
 from ..artdef_addon import scan as _scan
 from ..artdef_addon.options import FitOptions, OptionsError
 from . import compat, io, menus, rig, worker

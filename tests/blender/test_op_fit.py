@@ -181,7 +181,7 @@ def test_rig_follows_mesh_transform_and_parent(clean_scene, pkg, sample_files):
 def test_fit_job_runs_in_the_worker_process_and_esc_ends_it(pkg, sample_files):
     """The job behind the interactive (modal, Esc) path: polled without blocking, it runs in the
     worker process; Esc (``cancel``) mid-fit ends that process within a second."""
-    fit_mod = importlib.import_module(pkg.scan.__name__.rsplit(".", 1)[0] + ".fit")
+    fit_mod = importlib.import_module(pkg.scan.__name__.rsplit(".", 1)[0] + ".result")
     job = pkg.ops._FitJob(pkg.files.read_scan(sample_files["rod"]), 3)
     job.start().wait()
     assert job.error is None and job.result.n_links == 3

@@ -7,6 +7,7 @@ Everything goes through ``bpy.ops.artdef.*`` of the extension installed from the
 the core used for reference numbers is the installed copy too.
 """
 
+import importlib
 import os
 
 import numpy as np
@@ -27,7 +28,8 @@ def test_preview_segments_in_the_worker_process_and_cancels(clean_scene, pkg, sa
     job.start().wait()
     assert job.error is None and job.labels is not None
     assert job.pid is not None and job.pid != os.getpid()       # computed in the worker process
-    ref = pkg.ops._fit.Segmenter(pkg.io.read_scan(obj).scan).labels(11)
+    core = pkg.scan.__name__.rsplit(".", 1)[0]
+    ref = importlib.import_module(core + ".segmenter").Segmenter(pkg.io.read_scan(obj).scan).labels(11)
     assert len(np.unique(job.labels)) == 11 and np.array_equal(job.labels, ref)
     stages = []
 
@@ -42,7 +44,7 @@ def test_preview_segments_in_the_worker_process_and_cancels(clean_scene, pkg, sa
         job.start().wait()
     finally:
         pkg.ops.PROGRESS_HOOKS.remove(hook)
-    assert stages and isinstance(job.error, pkg.ops._fit.FitCancelled)
+    assert stages and isinstance(job.error, importlib.import_module(core + ".result").FitCancelled)
     assert pkg.ops.cached_segmentation(obj) is None
     assert "artdef_links" not in obj.data.color_attributes
 

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from artdef_addon import segmenter as SG
-from artdef_addon import cli, files, fit as F, samples
+from artdef_addon import cli, files, samples
+import artdef_addon
+from artdef_addon import result as RS
 
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -119,7 +121,7 @@ CASES = ["truncated", "npy under npz name", "text file", "gzip under npz name", 
 @pytest.fixture(scope="module")
 def result_file(rod, tmp_path_factory):
     p = tmp_path_factory.mktemp("res") / "res.npz"
-    F.save_result(p, F.fit(rod, 3))
+    RS.save_result(p, artdef_addon.fit(rod, 3))
     return p
 
 

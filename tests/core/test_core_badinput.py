@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 import artdef_addon
-from artdef_addon import cli, files, fit as F, samples, scan as S
+from artdef_addon import cli, files, samples, scan as S
+from artdef_addon import result as RS
 
 from badinput import (CASES, ROOT, _huge_header, _members, _no_fit, _sequence_module, bad_scans,
     digest, leftovers, npy, raw_npz, result_file, rod, rod_file, run)
@@ -75,7 +76,7 @@ def test_bad_result_file(result_file, tmp_path, capsys, damage, says):
     code, _, err = run(capsys, "info", p)
     assert code == 2 and len(err) == 1 and says in err[0] and "bad_result.npz" in err[0], err
     with pytest.raises(files.BadFile, match=says.replace("(", r"\(").replace(")", r"\)")):
-        F.load_result(p)
+        RS.load_result(p)
     assert digest(p) == before
 
 
@@ -93,7 +94,7 @@ def test_unreferenced_vertices_fit_with_sensible_weights(rod):
     v = np.vstack([rod.vertices, rod.vertices[src]])
     d = np.concatenate([rod.displacements, rod.displacements[:, src]], axis=1)
     for skin in ("refined", "seam"):
-        r = F.fit(S.Scan(v, rod.faces, displacements=d), 3, skin=skin)
+        r = artdef_addon.fit(S.Scan(v, rod.faces, displacements=d), 3, skin=skin)
         assert np.all(np.isfinite(r.weights)) and np.allclose(r.weights.sum(axis=1), 1.0)
         assert np.all(np.isfinite(r.residual))
         err = np.linalg.norm(r.residual, axis=2)               # (P, N) rest-space residual
@@ -115,7 +116,7 @@ def test_unusual_meshes_fit_on_the_command_line(rod, tmp_path, capsys):
         files.write_scan(p, sc)
         code, out, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / f"{name}_r.npz")
         assert code == 0 and err == [], (name, err)
-        r = F.load_result(tmp_path / f"{name}_r.npz")
+        r = RS.load_result(tmp_path / f"{name}_r.npz")
         assert r.face_labels.shape == (sc.n_faces,) and np.isfinite(r.rms_articulation), name
 
 
@@ -126,11 +127,11 @@ def test_single_field_error_is_not_available_not_zero(rod, tmp_path, capsys):
     files.write_scan(p, S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[1:2]))
     code, out, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / "r.npz")
     assert code == 0 and err == []
-    r = F.load_result(tmp_path / "r.npz")
+    r = RS.load_result(tmp_path / "r.npz")
     assert np.isfinite(r.articulation_error_percent) and f"{r.articulation_error_percent:.3g}% Karni" in out
     assert np.isnan(r.vertex_mean_error_percent)
     # a two-field fit reports both
-    r2 = F.fit(S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[:2]), 3)
+    r2 = artdef_addon.fit(S.Scan(rod.vertices, rod.faces, displacements=rod.displacements[:2]), 3)
     assert np.isfinite(r2.articulation_error_percent) and f"{r2.articulation_error_percent:.3g}%" in r2.summary()
     assert np.isfinite(r2.vertex_mean_error_percent)
     # --links auto on one field stays bounded (the undefined error counts as nothing to explain)

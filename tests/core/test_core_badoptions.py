@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from artdef_addon import segmenter as SG
-from artdef_addon import files, fit as F, options, scan as S
+from artdef_addon import files, options, scan as S
+from artdef_addon import result as RS
 
 from badinput import _no_fit, rod, rod_file, run
 
@@ -50,7 +51,7 @@ def test_max_links_is_bounded_by_the_triangles(tmp_path, capsys, monkeypatch):
     monkeypatch.undo()
     # the default (30) is clamped to the triangles, not refused
     code, out, err = run(capsys, "fit", p, "--links", "auto", "-o", tmp_path / "r.npz")
-    assert code == 0 and err == [] and 1 <= F.load_result(tmp_path / "r.npz").n_links <= 4
+    assert code == 0 and err == [] and 1 <= RS.load_result(tmp_path / "r.npz").n_links <= 4
 
 
 @pytest.mark.parametrize("argv,says", [
@@ -92,6 +93,6 @@ def test_settings_without_effect_are_said_not_dropped(rod_file, tmp_path, capsys
     assert code == 0 and err == []
     assert "note: --max-links bounds the link-count search; it has no effect with a fixed --links" in out
     assert "note: --p-max (strain hardening under the probe loads) has no effect on a tracked scan" in out
-    assert F.load_result(tmp_path / "o.npz").p_max == 4.0
+    assert RS.load_result(tmp_path / "o.npz").p_max == 4.0
     code, out, err = run(capsys, "fit", rod_file, "--links", "3", "--p-max", "4", "-q", "-o", tmp_path / "q.npz")
     assert code == 0 and out == "" and err == []

@@ -15,7 +15,8 @@ import sys
 import numpy as np
 import pytest
 
-from artdef_addon import cli, files, fit as F, samples
+from artdef_addon import cli, files, samples
+from artdef_addon import result as RS
 
 from badinput import ROOT, _no_fit, digest, leftovers, rod, rod_file, run
 
@@ -62,7 +63,7 @@ def test_output_written_with_exactly_the_name_given(rod_file, tmp_path, capsys):
     code, stdout, err = run(capsys, "fit", rod_file, "--links", "3", "-o", out, "-q")
     assert code == 0 and err == []
     assert sorted(os.listdir(tmp_path)) == ["result.dat", "rod.npz"]
-    assert F.load_result(out).n_links == 3
+    assert RS.load_result(out).n_links == 3
     code, stdout, err = run(capsys, "sample", "rod", "-o", tmp_path / "scan.bin")
     assert code == 0 and "wrote" in stdout and (tmp_path / "scan.bin").is_file()
     assert files.read_scan(tmp_path / "scan.bin").n_vertices == 297
@@ -86,7 +87,7 @@ def test_failed_overwrite_keeps_the_earlier_result(rod_file, tmp_path, capsys, m
     monkeypatch.setattr(files, "_savez", half_then_fail)
     got, _, err = run(capsys, "fit", rod_file, "--links", "2", "-o", out, "-q")
     assert got == code and len(err) == 1 and says in err[0], err
-    assert digest(out) == before and F.load_result(out).n_links == 3
+    assert digest(out) == before and RS.load_result(out).n_links == 3
     assert leftovers(tmp_path) == []
 
 
@@ -210,8 +211,8 @@ def test_replaced_outputs_keep_their_permissions_and_links(rod_file, tmp_path, c
     for out in (private, link):
         code, _, err = run(capsys, "fit", rod_file, "--links", "3", "-o", out, "-q")
         assert code == 0 and err == [], err
-    assert (private.stat().st_mode & 0o777) == 0o600 and F.load_result(private).n_links == 3
-    assert os.path.islink(link) and os.readlink(link) == str(target) and F.load_result(target).n_links == 3
+    assert (private.stat().st_mode & 0o777) == 0o600 and RS.load_result(private).n_links == 3
+    assert os.path.islink(link) and os.readlink(link) == str(target) and RS.load_result(target).n_links == 3
     code, _, err = run(capsys, "fit", rod_file, "--links", "3", "-o", "/dev/stdout")
     assert code == 2 and len(err) == 1 and "not a regular file" in err[0], err
     assert leftovers(tmp_path) == []
@@ -247,7 +248,7 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next(rod_file, tmp_path, c
     code, _, err = run(capsys, "fit", rod_file, "--links", "3", "-o", tmp_path / "out.npz", "-q")
     assert code == 0 and err == []
     assert not stale.exists() and alive.is_dir() and legacy.is_dir()
-    assert F.load_result(tmp_path / "out.npz").n_links == 3
+    assert RS.load_result(tmp_path / "out.npz").n_links == 3
 
 
 @pytest.mark.parametrize("links", ["3", "auto"])
@@ -266,7 +267,7 @@ def test_stdout_closed_early_still_writes_the_outputs(rod_file, tmp_path, links)
     finally:
         os.close(w)
     assert p.returncode == 0 and p.stderr == "", p.stderr
-    assert F.load_result(out).n_links >= 1 and leftovers(tmp_path) == []
+    assert RS.load_result(out).n_links >= 1 and leftovers(tmp_path) == []
 
 def test_too_long_output_name_is_refused_before_work(rod_file, tmp_path, capsys, monkeypatch):
     """A file name longer than the file system allows was found only when writing, after the fit:

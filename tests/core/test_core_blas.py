@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from artdef_addon import blas, fit as F, metric, samples
+from artdef_addon import blas, metric, samples
+from artdef_addon import segmenter as SG
 
 
 def test_single_threaded_sets_and_restores_openblas_threads_and_changes_no_bit():
@@ -11,7 +12,7 @@ def test_single_threaded_sets_and_restores_openblas_threads_and_changes_no_bit()
         pytest.skip("numpy does not use OpenBLAS here: single_threaded does nothing")
     set_, get_ = fns
     before = get_()
-    seg = F.Segmenter(samples.make("branching"))
+    seg = SG.Segmenter(samples.make("branching"))
     f = seg.features[0]
     rows, cols = np.arange(0, seg.features[0].n, 2), np.arange(seg.features[0].n)
     many = metric.distance_block(f, rows, cols)

@@ -19,7 +19,8 @@ import pytest
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
 
-from artdef_addon import cli, files, fit as F, scan as S  # noqa: E402
+from artdef_addon import cli, files, scan as S  # noqa: E402
+from artdef_addon import result as RS
 
 N_EXAMPLES = int(os.environ.get("ARTDEF_FUZZ_EXAMPLES", "40"))
 FUZZ = settings(max_examples=N_EXAMPLES, deadline=None, database=None,
@@ -44,7 +45,7 @@ def check_outcome(path, workdir, capsys, links="2"):
     lines = [line for line in err.splitlines() if line.strip()]
     assert code in (0, 2), (code, err)
     if code == 0:
-        assert lines == [] and F.load_result(out).face_labels.ndim == 1
+        assert lines == [] and RS.load_result(out).face_labels.ndim == 1
     else:
         assert len(lines) == 1 and lines[0].startswith("artdef: error: "), err
         assert not os.path.exists(out)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import artdef_addon
-from artdef_addon import files, fit as F, samples, scan as S
+from artdef_addon import files, samples, scan as S
+from artdef_addon import result as RS
 
 
 @pytest.fixture
@@ -58,7 +59,7 @@ def test_degenerate_triangles_reported_and_handled(rod):
     faces = np.vstack([rod.faces, [[10, 10, 11]], [[20, 21, 21]]])
     sc = S.validate_scan(_scan(rod, faces=faces))
     assert sc.degenerate_faces.tolist() == [len(rod.faces), len(rod.faces) + 1]
-    r = F.fit(sc, 3)
+    r = artdef_addon.fit(sc, 3)
     assert r.face_labels.shape == (len(faces),) and r.face_labels.min() >= 0
     # the degenerate faces take their neighbours' link
     assert r.face_labels[-2] == r.face_labels[np.flatnonzero((rod.faces == 10).any(1))[0]]
@@ -68,7 +69,7 @@ def test_more_links_than_triangles(rod):
     v = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
     tiny = S.Scan(v, np.array([[0, 1, 2], [0, 2, 3]]), displacements=np.ones((2, 4, 3)) * [[[0], [0.1], [0.2], [0]]])
     with pytest.raises(S.ScanError, match=r"more links requested \(3\) than triangles \(2\)"):
-        F.fit(tiny, 3)
+        artdef_addon.fit(tiny, 3)
 
 
 def test_bad_options(rod):
@@ -128,7 +129,7 @@ def test_cli_sample_and_fit(tmp_path):
     p = run("fit", str(scan), "--links", "3", "-o", str(res))
     assert p.returncode == 0, p.stderr
     assert "joint (12.0000" in p.stdout and "time:" in p.stdout
-    r = F.load_result(res)
+    r = RS.load_result(res)
     assert r.n_links == 3
 
 
@@ -141,7 +142,7 @@ def test_validated_scan_is_checked_once(rod, monkeypatch):
     sc = S.validate_scan(_scan(rod))
     assert len(calls) == 1
     assert S.validate_scan(sc) is sc and len(calls) == 1
-    F.fit(sc, 3)
+    artdef_addon.fit(sc, 3)
     assert len(calls) == 1
     with pytest.raises(ValueError, match="read-only"):
         sc.displacements[0, 0, 0] = np.nan

@@ -93,9 +93,9 @@ def test_core_has_no_import_cycle():
 def test_the_layer_test_sees_lazy_and_relative_imports(tmp_path):
     """The checks above can fail: a lazy bpy import and a lazy relative import are both found."""
     p = tmp_path / "m.py"
-    p.write_text("def f():\n    import bpy\n    from . import fit\n    from .scan import load_scan\n")
+    p.write_text("def f():\n    import bpy\n    from . import pipeline\n    from .scan import load_scan\n")
     absolute, core = _imports(p)
-    assert "bpy" in absolute and {"fit", "scan"} <= core
+    assert "bpy" in absolute and {"pipeline", "scan"} <= core
 
 
 def test_core_imports_without_blender():
@@ -126,8 +126,8 @@ def test_public_fit_from_a_file_auto_links_and_save_load(tmp_path):
     np.testing.assert_array_equal(back.weights, result.weights)
     np.testing.assert_array_equal(back.face_labels, result.face_labels)
     assert back.link_reason == result.link_reason
-    # the same fit through the old entry, given the count: same numbers
-    ref = artdef_addon.fit.fit(artdef_addon.load_scan(path), 3)
+    # the same fit given the count: same numbers
+    ref = artdef_addon.fit(artdef_addon.load_scan(path), 3)
     assert "links" not in ref.timings
     np.testing.assert_array_equal(ref.face_labels, result.face_labels)
     np.testing.assert_allclose(ref.weights, result.weights, atol=1e-12)

@@ -2,7 +2,9 @@
 import numpy as np
 import pytest
 
-from artdef_addon import fit as F, model, quality, samples
+from artdef_addon import model, quality, samples
+import artdef_addon
+from artdef_addon import segmenter as SG
 
 
 def _truth_angles(result, truth):
@@ -15,14 +17,14 @@ def _truth_angles(result, truth):
     return out
 
 
-@pytest.mark.parametrize("strategy", F.STRATEGIES)
+@pytest.mark.parametrize("strategy", SG.STRATEGIES)
 @pytest.mark.parametrize("blend", [1.0, 2.0])
 def test_table1_rod_robust_exact_lsq_biased(blend, strategy, capsys):
     scan, truth = samples.rod(blend=blend)
     # the paper's model: seam-blended weights, angles straight from the robust link motions
-    robust = F.fit(scan, 3, motion="robust", strategy=strategy, skin="seam")
-    lsq = F.fit(scan, 3, motion="lsq", strategy=strategy, skin="seam")
-    refined = F.fit(scan, 3, motion="robust", strategy=strategy)  # tracked default: refined skin
+    robust = artdef_addon.fit(scan, 3, motion="robust", strategy=strategy, skin="seam")
+    lsq = artdef_addon.fit(scan, 3, motion="lsq", strategy=strategy, skin="seam")
+    refined = artdef_addon.fit(scan, 3, motion="robust", strategy=strategy)  # tracked default: refined skin
     assert refined.skin == "refined"
     assert np.abs(refined.joints - truth["joints"]).max() < 1e-6 * 36.0
     assert refined.articulation_error_percent <= robust.articulation_error_percent
@@ -59,14 +61,14 @@ def _check_branching(result, truth, diag, tol=0.01):
 @pytest.mark.parametrize("kw", [dict(), dict(noise=0.02, bulges=True), dict(disconnected=True),
                                 dict(disconnected=True, noise=0.02, bulges=True)],
                          ids=["clean", "noisy", "disconnected", "disconnected-noisy"])
-@pytest.mark.parametrize("strategy", F.STRATEGIES)
+@pytest.mark.parametrize("strategy", SG.STRATEGIES)
 def test_branching_links_joints_tree(kw, strategy):
     scan, truth = samples.branching(**kw)
     if kw.get("disconnected"):
         from artdef_addon.clustering import face_adjacency, split
         comps = split(np.zeros((1, scan.faces.shape[0]), int), face_adjacency(scan.faces))
         assert comps.max() + 1 == 6, "hub and five separate arms"
-    result = F.fit(scan, 11, strategy=strategy)
+    result = artdef_addon.fit(scan, 11, strategy=strategy)
     _check_branching(result, truth, np.linalg.norm(np.ptp(scan.vertices, axis=0)))
 
 
@@ -74,7 +76,7 @@ def test_branching_links_joints_tree(kw, strategy):
                                                  ("pseudo", None, "paper"), ("pseudo", 3.0, "auto")])
 def test_greens_reproduces_columns(mode, p_max, strategy):
     scan = samples.make("greens_rod", probe_load=2.0)
-    result = F.fit(scan, 3, mode=mode, p_max=p_max, strategy=strategy)
+    result = artdef_addon.fit(scan, 3, mode=mode, p_max=p_max, strategy=strategy)
     fields = scan.fields()
     M = scan.n_loads
     scale = np.abs(fields).max()
@@ -96,7 +98,7 @@ def test_greens_reproduces_columns(mode, p_max, strategy):
 
 def test_hardening_saturates_residual_only():
     scan = samples.make("greens_rod")
-    result = F.fit(scan, 3, p_max=2.0)
+    result = artdef_addon.fit(scan, 3, p_max=2.0)
     loads = np.zeros((scan.n_loads, 3))
     loads[3, 2] = 2.0 * scan.probe_load
     v = model.shape_values_for_loads(result, loads)

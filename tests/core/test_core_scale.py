@@ -1,7 +1,9 @@
 """Scale: cost estimate, the reduced method on patches, streaming over fields."""
 import numpy as np
 
-from artdef_addon import cost, fit as F, patches, quality, samples
+from artdef_addon import cost, patches, quality, samples
+import artdef_addon
+from artdef_addon import pipeline as PL, segmenter as SG
 
 
 def test_estimate_switches_to_reduced_above_budget():
@@ -46,11 +48,11 @@ def test_estimate_time_reads_as_a_duration():
 
 def test_reduced_method_agrees_with_full():
     scan, truth = samples.branching(noise=0.02, bulges=True)
-    full = F.fit(scan, 11)
-    seg = F.Segmenter(scan, reduce=True, max_units=300)
+    full = artdef_addon.fit(scan, 11)
+    seg = SG.Segmenter(scan, reduce=True, max_units=300)
     assert seg.reduced and len(seg.unit_tri) <= 300
     assert any("reduced method" in n for n in seg.notes)
-    red = F.fit(scan, 11, segmenter=seg)
+    red = PL.fit(scan, 11, None, segmenter=seg)
     assert quality.adjusted_rand_index(red.face_labels, full.face_labels) >= 0.99
     assert quality.adjusted_rand_index(red.face_labels, truth["face_labels"]) >= 0.99
     diag = np.linalg.norm(np.ptp(scan.vertices, axis=0))
@@ -62,13 +64,13 @@ def test_reduced_method_agrees_with_full():
 
 def test_auto_reduce_on_small_budget_says_so():
     scan = samples.make("branching")
-    seg = F.Segmenter(scan, budget=2 ** 20)
+    seg = SG.Segmenter(scan, budget=2 ** 20)
     assert seg.reduced and "reduced method" in " ".join(seg.notes)
 
 
 def test_patches_are_connected_bounded_and_do_not_cross_links():
     scan, truth = samples.branching()
-    seg = F.Segmenter(scan, reduce=True, max_units=400)
+    seg = SG.Segmenter(scan, reduce=True, max_units=400)
     labels = seg.unit_of
     assert labels.max() + 1 == len(seg.unit_tri)
     sizes = np.bincount(labels)
@@ -161,7 +163,7 @@ def test_reduced_method_counts_triangles_not_patches():
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
     from generate import branching_scan
     scan, truth = branching_scan(4000, n_fields=12, seed=7)
-    seg = F.Segmenter(scan, reduce=True, max_units=60)
+    seg = SG.Segmenter(scan, reduce=True, max_units=60)
     assert len(seg.unit_tri) <= 60
     assert np.array_equal(np.bincount(seg.unit_of), seg.unit_size)
     assert seg.unit_size.max() > 2 * seg.unit_size.min()  # the patches really differ in size
@@ -184,7 +186,7 @@ def test_estimate_prices_the_patch_streams_memory():
     before = status_kb("VmRSS")
     if not reset_peak() or before == 0:
         pytest.skip("no /proc/self/clear_refs: the peak cannot be reset here")
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     rise = (status_kb("VmHWM") - before) * 1024.0
     assert seg.reduced
     priced = cost.stream_bytes(scan.n_faces, scan.n_fields)

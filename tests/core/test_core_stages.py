@@ -5,8 +5,10 @@ from scipy.cluster.hierarchy import linkage
 from scipy.spatial.transform import Rotation
 
 from artdef_addon import segmenter as SG, stages as ST
-from artdef_addon import clustering, fit as F, joints, metric, model, quality, samples
+from artdef_addon import clustering, joints, metric, model, quality, samples
 from artdef_addon.frames import relative_motions
+import artdef_addon
+from artdef_addon import pipeline as PL, result as RS
 
 
 def _rigid(x, seed=0):
@@ -27,7 +29,7 @@ def test_rigid_motion_frames_exact_and_epsilon_zero():
     assert rigid_max < 1e-6 * np.linalg.norm(np.ptp(scan.vertices, axis=0))
     articulated = metric.field_features(scan.vertices, scan.displacements[0], scan.faces)
     assert metric.condensed_distance(articulated).max() > 1e5 * rigid_max
-    r = F.fit(F.Scan(scan.vertices, scan.faces, displacements=(x1 - scan.vertices)[None]), 1)
+    r = artdef_addon.fit(artdef_addon.Scan(scan.vertices, scan.faces, displacements=(x1 - scan.vertices)[None]), 1)
     assert r.n_links == 1 and r.rms_articulation < 1e-9
 
 
@@ -89,17 +91,17 @@ def test_link_motions_of_unclustered_fields_are_their_medoid_units_motions(monke
     displacement — the same arrays whether those fields are done one at a time or in one chunk."""
     monkeypatch.setattr(SG, "SEGMENT_FIELDS", 4)
     scan = samples.make("branching", n_fields=12, noise=0.01)
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     assert len(seg.clustered) == 4
     labels, medoids, used = seg.segment(11)
     idx = np.arange(scan.n_fields)
     fields = scan.fields()
     args = (scan.vertices, fields, scan.faces, seg.full_labels(labels), medoids.shape[0], "robust", seg, medoids,
             used, idx)
-    R, t = F.link_motions(*args)
+    R, t = ST.link_motions(*args)
     monkeypatch.setattr(ST, "NEAR_BLOCK", 1)            # one field a chunk, the nearest fields searched again
     seg.nearest_field = {}
-    R1, t1 = F.link_motions(*args)
+    R1, t1 = ST.link_motions(*args)
     assert np.array_equal(R, R1) and np.array_equal(t, t1)
     units = np.unique(medoids)
     unit_faces = seg.faces[seg.unit_tri[units]]
@@ -144,7 +146,7 @@ def test_hinge_only_fit_does_not_crash():
         w = np.clip((x0[:, 0] - 11) / 2, 0, 1)[:, None]
         c = np.array([12.0, 0, 0])
         fields.append(w * ((x0 - c) @ R.T + c - x0))
-    r = F.fit(F.Scan(x0, scan.faces, displacements=np.array(fields)), 2)
+    r = artdef_addon.fit(artdef_addon.Scan(x0, scan.faces, displacements=np.array(fields)), 2)
     j = r.joints[1]
     assert abs(j[0] - 12) < 1e-6 and abs(j[1]) < 1e-6  # on the hinge line x=12, y=0
 
@@ -195,7 +197,7 @@ def test_hardening_table(p_max, s, expected):
 @pytest.mark.parametrize("skin", ["seam", "refined"])
 def test_weights_rows_sum_to_one_and_blend_at_seams(skin):
     scan, truth = samples.rod()
-    r = F.fit(scan, 3, skin=skin)
+    r = artdef_addon.fit(scan, 3, skin=skin)
     assert np.allclose(r.weights.sum(axis=1), 1.0)
     x = scan.vertices[:, 0]
     inner = (x > 3) & (x < 9)
@@ -208,9 +210,9 @@ def test_weights_rows_sum_to_one_and_blend_at_seams(skin):
 
 def test_result_roundtrip(tmp_path):
     scan = samples.make("greens_rod")
-    r = F.fit(scan, 3, mode="pseudo", p_max=2.0)
-    F.save_result(tmp_path / "r.npz", r)
-    back = F.load_result(tmp_path / "r.npz")
+    r = artdef_addon.fit(scan, 3, mode="pseudo", p_max=2.0)
+    RS.save_result(tmp_path / "r.npz", r)
+    back = RS.load_result(tmp_path / "r.npz")
     for name in ("face_labels", "joints", "parents", "weights", "angles", "residual", "kappa", "frames"):
         assert np.array_equal(getattr(back, name), getattr(r, name), equal_nan=True), name
     assert back.p_max == 2.0 and back.mode == "pseudo" and len(back.pseudo) == len(r.pseudo)
@@ -223,7 +225,7 @@ def test_result_roundtrip(tmp_path):
 
 def test_segmenter_recut_does_not_recompute_distances():
     scan = samples.make("branching")
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     a = seg.labels(11)
     trees = dict(seg._trees)
     b = seg.labels(5)
@@ -240,8 +242,8 @@ def test_cancel_from_progress(strategy, stop_at):
         calls.append(stage)
         return stage == stop_at
 
-    with pytest.raises(F.FitCancelled):
-        F.fit(scan, 11, progress=progress, strategy=strategy)
+    with pytest.raises(RS.FitCancelled):
+        artdef_addon.fit(scan, 11, progress=progress, strategy=strategy)
     assert calls[0] == "features" and calls[-1] == stop_at
 
 
@@ -251,11 +253,11 @@ def test_link_count_sweep_reuses_cluster_sums_and_matches_fresh_fits(name, ks):
     distance sums of clusters it has seen, and gives bit-identical links and medoids to a
     Segmenter that starts from nothing for each count."""
     scan = samples.make(name)
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     swept = [seg.segment(k) for k in ks]
     assert seg.sum_cache.hits > 0
     for k, (lab, med, _) in zip(ks, swept):
-        fresh = F.Segmenter(scan)
+        fresh = SG.Segmenter(scan)
         fresh.sum_cache = None
         lab1, med1, _ = fresh.segment(k)
         assert np.array_equal(lab, lab1) and np.array_equal(med, med1), k
@@ -349,7 +351,7 @@ def test_fitted_faces_belong_to_the_link_dominating_the_kept_skin():
     object, where the relabelling's and the split's last labels left 8 faces off that rule."""
     from artdef_addon import merge
     scan, truth = samples.make_with_truth("branching", n_fields=12, blend=4.0, seed=2)
-    r = F.fit(scan, int(truth["face_labels"].max()) + 1, skin="refined")
+    r = artdef_addon.fit(scan, int(truth["face_labels"].max()) + 1, skin="refined")
     dom = merge.dominant_faces(r.weights, scan.faces, r.face_labels)
     assert np.array_equal(r.face_labels, dom)
     assert r.articulation_error_percent < 0.1
@@ -422,7 +424,7 @@ def test_residual_blocks_reproduce_every_field_exactly():
         old = ST.RESIDUAL_BLOCK_BYTES
         ST.RESIDUAL_BLOCK_BYTES = nbytes
         try:
-            res[nbytes] = F.fit(scan, 5)
+            res[nbytes] = artdef_addon.fit(scan, 5)
         finally:
             ST.RESIDUAL_BLOCK_BYTES = old
     a, b = res[1], res[2 ** 30]
@@ -465,11 +467,11 @@ def test_resumed_fit_is_the_whole_fit_and_its_timings_count_the_first_stages():
     whole, and its ``timings`` count the stages the partial ran: the merge share and a total at
     least the sum of every stage's seconds (the panel and Auto Links report them)."""
     scan = samples.make("branching")
-    whole = F.fit(scan, 5, segmenter=F.Segmenter(scan))
-    seg = F.Segmenter(scan)
-    state, done = F.fit_until(seg, 5, "split")
+    whole = PL.fit(scan, 5, None, segmenter=SG.Segmenter(scan))
+    seg = SG.Segmenter(scan)
+    state, done = PL.fit_until(seg, 5, "split")
     assert "relabel" in done and "split" not in done
-    resumed = F.fit(scan, 5, segmenter=seg, resume=(state, done))
+    resumed = PL.fit(scan, 5, None, segmenter=seg, resume=(state, done))
     assert np.array_equal(resumed.face_labels, whole.face_labels)
     assert np.allclose(resumed.weights, whole.weights, atol=1e-12)
     tm = resumed.timings
@@ -485,21 +487,21 @@ def test_fit_from_given_labels_keeps_their_links_and_finishes_into_a_fit():
     finished fit keeps the true partition at the floor's error, with joints and timings like a fit
     of the Segmenter's own cut; a cut one link short, given as labels, stays one link short."""
     scan, truth = samples.branching()
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     labels = truth["face_labels"].copy()
     labels = np.where(labels == 3, 10, np.where(labels == 10, 3, labels))     # another link order
-    state, done = F.fit_until(seg, 11, "split", labels=labels)
+    state, done = PL.fit_until(seg, 11, "split", labels=labels)
     assert list(done) == ["segment", "motions", "relabel", "skin"] and state.n_links == 11
-    r = F.fit(scan, 11, segmenter=seg, resume=(state, done))
+    r = PL.fit(scan, 11, None, segmenter=seg, resume=(state, done))
     assert r.n_links == 11 and quality.adjusted_rand_index(r.face_labels, truth["face_labels"]) == 1.0
     assert r.articulation_error_percent < 0.01
     assert np.mean(r.face_labels[labels == 10] == 10) > 0.9 and np.mean(r.face_labels[labels == 3] == 3) > 0.9
     assert np.isfinite(r.joints).all(axis=1).sum() == 10 and r.timings["total"] >= r.timings["relabel"]
-    short = F.fit(scan, 10, segmenter=seg, resume=F.fit_until(seg, 10, "split", labels=seg.full_labels(seg.segment(10)[0])))
+    short = PL.fit(scan, 10, None, segmenter=seg, resume=PL.fit_until(seg, 10, "split", labels=seg.full_labels(seg.segment(10)[0])))
     assert short.n_links == 10 and short.articulation_error_percent > 1.0
     gap = np.where(labels == 10, 11, labels)              # link 10 owns nothing
     with pytest.raises(ValueError, match="each owning a clustered triangle"):
-        F.fit_until(seg, 11, "split", labels=gap)
+        PL.fit_until(seg, 11, "split", labels=gap)
 
 
 @pytest.mark.parametrize("block_bytes", [1, 2 ** 30])
@@ -557,13 +559,13 @@ def test_more_poses_than_the_trials_use_keep_the_split_stage(monkeypatch):
         return real(*a, **k)
     monkeypatch.setattr(splits, "split_links", spy)
     monkeypatch.setattr(swaps, "SWAP_BUDGET", N * skinning.SAMPLE_FIELDS)   # below N × P
-    r = F.fit(scan, 11)
+    r = artdef_addon.fit(scan, 11)
     assert calls == [skinning.SAMPLE_FIELDS]
     assert not any("skipped" in n for n in r.notes)
     within, _ = cost.articulation_cost(N, P, 11)
     monkeypatch.setattr(swaps, "SWAP_BUDGET", N * skinning.SAMPLE_FIELDS - 1)
     calls.clear()
-    r = F.fit(scan, 11)
+    r = artdef_addon.fit(scan, 11)
     assert calls == []
     # the estimate stops pricing the trials exactly where the fit stops running them
     above, _ = cost.articulation_cost(N, P, 11)

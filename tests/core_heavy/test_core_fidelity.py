@@ -4,7 +4,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from artdef_addon import fit as F, quality, samples, scan as S
+from artdef_addon import quality, samples, scan as S
+import artdef_addon
+from artdef_addon import result as RS
 
 DATA = Path(__file__).parent.parent / "data"
 
@@ -54,7 +56,7 @@ def test_reported_error_is_the_distortion_of_the_result_itself(name, kw, links):
     own weights and motions (pose parameters through forward kinematics, and the reported link motions)
     within 2 % relative; E_RMS likewise."""
     scan = samples.make(name, **kw)
-    r = F.fit(scan, links)
+    r = artdef_addon.fit(scan, links)
     X = scan.vertices[None] + scan.fields()
     for motions in ("pose", "links"):
         Xhat = quality.reproduce(r, scan.vertices, motions)
@@ -69,13 +71,13 @@ def test_elastic_object_is_flagged_articulated_ones_are_not():
     whatever the link count; the rod, the noisy branching object and the Green's rod are not."""
     scan = samples.make("elastic")
     for links in (4, 8):
-        r = F.fit(scan, links)
+        r = artdef_addon.fit(scan, links)
         assert not r.articulated
         note = [n for n in r.notes if "do not look articulated" in n]
         assert note and f"{r.articulation_error_percent:.3g}%" in note[0] and f"{r.rigid_error_percent:.3g}%" in note[0]
         assert r.articulation_error_percent / r.rigid_error_percent * links > quality.NOT_ARTICULATED
     for name, kw, links in [("rod", {}, 3), ("branching", dict(noise=0.02, bulges=True), 11), ("greens_rod", {}, 3)]:
-        r = F.fit(samples.make(name, **kw), links)
+        r = artdef_addon.fit(samples.make(name, **kw), links)
         assert r.articulated, r.notes
         assert not any("do not look articulated" in n for n in r.notes)
         assert r.rigid_error_percent > 5 * r.articulation_error_percent
@@ -83,18 +85,18 @@ def test_elastic_object_is_flagged_articulated_ones_are_not():
 
 def test_result_file_keeps_the_new_figures_and_old_files_still_load(tmp_path):
     scan = samples.make("elastic")
-    r = F.fit(scan, 4)
+    r = artdef_addon.fit(scan, 4)
     path = tmp_path / "r.npz"
-    F.save_result(path, r)
-    back = F.load_result(path)
+    RS.save_result(path, r)
+    back = RS.load_result(path)
     for k in ("articulation_error_percent", "e_rms", "vertex_mean_error_percent", "rigid_error_percent",
               "linear_error_percent"):
         assert getattr(back, k) == pytest.approx(getattr(r, k), rel=1e-12)
     assert back.linear_rank == r.linear_rank and back.articulated is False and back.notes == r.notes
     with np.load(path) as z:       # a file of an older version: none of its keys
-        old = {k: z[k] for k in z.files if k not in F._FIDELITY + ("notes", "linear_rank", "articulated")}
+        old = {k: z[k] for k in z.files if k not in RS._FIDELITY + ("notes", "linear_rank", "articulated")}
     np.savez(tmp_path / "old.npz", **old)
-    o = F.load_result(tmp_path / "old.npz")
+    o = RS.load_result(tmp_path / "old.npz")
     assert np.isnan(o.e_rms) and o.articulated and o.notes == []
     assert o.articulation_error_percent == pytest.approx(r.articulation_error_percent)
 
@@ -116,7 +118,7 @@ def test_shared_rigs_fresh_seeds(name, seed, capsys):
         d = {k: z[k] for k in z.files}
     poses = samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"], d["gt_parents"], 20, seed=seed)
     scan = S.Scan(d["vertices"], d["faces"], displacements=poses)
-    r = F.fit(scan, len(np.unique(d["gt_face_labels"])))
+    r = artdef_addon.fit(scan, len(np.unique(d["gt_face_labels"])))
     ari = quality.adjusted_rand_index(r.face_labels, d["gt_face_labels"])
     diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
     _, err = quality.true_joint_errors(r, d["gt_joints"], d["gt_parents"], d["gt_face_labels"])

@@ -6,7 +6,9 @@ import pytest
 from scipy.optimize import minimize
 
 from artdef_addon import pipeline, stages as ST
-from artdef_addon import files, fit as F, joints, linkcount, quality, samples, scan as S, skinning
+from artdef_addon import files, joints, linkcount, quality, samples, scan as S, skinning
+import artdef_addon
+from artdef_addon import pipeline as PL, result as RS, segmenter as SG
 
 DATA = Path(__file__).parent.parent / "data"
 
@@ -121,8 +123,8 @@ def test_refined_skin_reproduces_a_rig_from_its_true_motions():
 
 def test_refined_weights_reproduce_linear_blends():
     scan, truth = samples.branching()
-    seam = F.fit(scan, 11, skin="seam")
-    refined = F.fit(scan, 11, skin="refined")
+    seam = artdef_addon.fit(scan, 11, skin="seam")
+    refined = artdef_addon.fit(scan, 11, skin="refined")
     assert refined.skin == "refined"
     assert refined.articulation_error_percent < 0.01 < seam.articulation_error_percent
     assert np.allclose(refined.weights.sum(1), 1) and (refined.weights >= 0).all()
@@ -135,7 +137,7 @@ def test_refined_weights_reproduce_linear_blends():
                                                ("branching", dict(noise=0.02, bulges=True), 11),
                                                ("branching", dict(disconnected=True), 11)])
 def test_auto_link_count_on_generated_samples(name, kw, expected):
-    choice = linkcount.choose_links(F.Segmenter(samples.make(name, **kw)), max_links=16)
+    choice = linkcount.choose_links(SG.Segmenter(samples.make(name, **kw)), max_links=16)
     assert choice.links == expected, choice.reason
     assert f"chose {expected}" in choice.reason
 
@@ -145,7 +147,7 @@ def test_descending_curve_reads_the_counts_the_rule_needs():
     count it computes has the whole curve's value, it stops under two counts in a row above the
     tau bar of the counts it read, and the tree rule picks the same count from it (the noisy
     branching sample: a big drop to 11 links)."""
-    seg = F.Segmenter(samples.make("branching", noise=0.02, bulges=True))
+    seg = SG.Segmenter(samples.make("branching", noise=0.02, bulges=True))
     full = linkcount.articulation_error_curve(seg, 16)
     part = linkcount.descending_curve(seg, 16)
     read = ~np.isnan(part)
@@ -178,7 +180,7 @@ def test_panel_words_for_a_curve_with_counts_the_search_skipped():
 def test_whole_fits_climb_to_the_true_link_count():
     """Started below the truth (8 of 11 links on the branching object), the whole fits' error
     keeps falling faster than k^-2 until every arm segment has its link, then stays at the floor."""
-    seg = F.Segmenter(samples.make("branching"))
+    seg = SG.Segmenter(samples.make("branching"))
     k, errors = linkcount._whole_fits_upward(seg, 8, 16, 4)
     assert k == 11
     assert errors[10] > 1.0 > 0.01 > errors[11]
@@ -194,7 +196,7 @@ def test_grown_links_spare_whole_fits_and_climb_to_the_true_link_count():
     as the fit fit.fit makes there. A link grown on the 10-link fit (one arm segment short) finds
     that segment: the error drops from over 1 % to the floor's order."""
     scan, truth = samples.branching()
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     fits = {}
     work = {}
     k, whole, grown, decisions = linkcount._grown_upward(seg, 8, 16, 4, linkcount.SearchProgress(None, 1.0), fits,
@@ -204,11 +206,11 @@ def test_grown_links_spare_whole_fits_and_climb_to_the_true_link_count():
     assert set(whole) == set(fits) == {11} and whole[11] < 0.01 and work["grown_links"] >= 3
     assert work["partial_fits"] == 4 and work["climbed_fits"] == 3
     # the finished fit, climbed to from grown links, finds the true links as the fit fit.fit makes does
-    again = F.fit(scan, 11, segmenter=seg)
+    again = PL.fit(scan, 11, None, segmenter=seg)
     for r in (again, fits[11]):
         assert r.n_links == 11 and quality.adjusted_rand_index(r.face_labels, truth["face_labels"]) == 1.0
     assert fits[11].articulation_error_percent <= 1.05 * again.articulation_error_percent + 1e-9
-    r = F.fit(scan, 10, segmenter=seg)
+    r = PL.fit(scan, 10, None, segmenter=seg)
     assert r.articulation_error_percent > 1.0
     X = scan.vertices[None] + scan.fields()
     spread = float(np.sum((X - X.mean(axis=1, keepdims=True)) ** 2))
@@ -291,7 +293,7 @@ def test_links_auto_drops_interpolating_links_on_smooth_blends():
     segment), a 12th link is spent inside a blend and moves as a blend of its neighbours: the
     drop takes it off and the 11-link fit has no link that is not a bone."""
     scan, truth = samples.branching(blend=2.5)
-    k, steps = linkcount._drop_non_bones(F.Segmenter(scan), 12, {})
+    k, steps = linkcount._drop_non_bones(SG.Segmenter(scan), 12, {})
     assert (k, steps) == (11, [(12, 1), (11, 0)])
 
 
@@ -306,7 +308,7 @@ def test_upward_search_stops_where_the_fit_already_has_a_link_that_is_not_a_bone
     monkeypatch.setattr(linkcount, "GROWN_MARGIN", 1e9)
     monkeypatch.setattr(linkcount, "FLOOR_MARGIN", 1e9)
     scan, truth = samples.branching(blend=2.5)
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     fits = {}
     k, whole, grown, decisions = linkcount._grown_upward(seg, 12, 16, 4, linkcount.SearchProgress(None, 1.0), fits)
     assert (k, decisions) == (12, [(12, "non-bones")]) and set(fits) == {12}
@@ -318,7 +320,7 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     """The chooser's fit at the chosen count is the one ``fit`` would make (same segmenter), so the
     command line uses it instead of fitting that count again; other fit options refit."""
     scan = samples.make("branching")
-    seg = F.Segmenter(scan)
+    seg = SG.Segmenter(scan)
     reports = []
     choice = linkcount.choose_links(seg, max_links=16, progress=lambda s, f: reports.append((s, f)) and False)
     # the search is one stage whose fraction only grows, from 0 to 1 (its fits' stages inside it)
@@ -327,7 +329,7 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     assert fractions[0] == 0.0 and fractions[-1] == 1.0 and fractions == sorted(fractions)
     assert len(set(fractions)) > 16                   # each count of the curve and each fit moves it
     mine = choice.reusable()
-    again = F.fit(scan, choice.links, segmenter=seg)
+    again = PL.fit(scan, choice.links, None, segmenter=seg)
     assert mine is not None and mine.n_links == choice.links == 11
     assert np.array_equal(mine.face_labels, again.face_labels)
     assert np.allclose(mine.weights, again.weights) and np.allclose(mine.joints, again.joints, equal_nan=True)
@@ -337,7 +339,7 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     path = tmp_path / "branching.npz"
     files.write_scan(path, scan)
     calls = []
-    real_fit = F.fit
+    real_fit = PL.fit
     monkeypatch.setattr(pipeline, "fit", lambda *a, **k: calls.append(a[1]) or real_fit(*a, **k))
     assert cli.main(["fit", str(path), "--links", "auto", "--max-links", "16", "-o", str(tmp_path / "r.npz")]) == 0
     out = capsys.readouterr().out
@@ -345,7 +347,7 @@ def test_links_auto_hands_back_its_own_fit(tmp_path, capsys, monkeypatch):
     assert "11 links leave " in out and "% of the motion unexplained" in out    # the panel's plain sentence too
     shown = [int(l.split()[-1][:-1]) for l in out.splitlines() if l.startswith("choosing the link count: ")]
     assert shown[0] == 0 and shown[-1] == 100 and shown == sorted(set(shown))   # the search, in tenths
-    assert F.load_result(tmp_path / "r.npz").n_links == 11
+    assert RS.load_result(tmp_path / "r.npz").n_links == 11
     assert 11 in calls and len(calls) == len(set(calls))   # no count fitted twice: the CLI reused it
 
 
@@ -354,7 +356,7 @@ def test_auto_link_count_rigid_is_one():
     from scipy.spatial.transform import Rotation
     R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
     d = np.stack([scan.vertices @ R.T + [1, 2, 3] - scan.vertices, scan.vertices @ R.T @ R.T - scan.vertices])
-    choice = linkcount.choose_links(F.Segmenter(S.Scan(scan.vertices, scan.faces, displacements=d)), 8)
+    choice = linkcount.choose_links(SG.Segmenter(S.Scan(scan.vertices, scan.faces, displacements=d)), 8)
     assert choice.links == 1
 
 
@@ -363,7 +365,7 @@ def test_never_collapses_on_random_rods():
     for seed in range(20):
         n_fields = 3 + seed % 8
         scan, truth = samples.rod(n_fields=n_fields, seed=100 + seed)
-        r = F.fit(scan, 3)
+        r = artdef_addon.fit(scan, 3)
         found += len(np.unique(r.face_labels)) == 3 and \
             quality.adjusted_rand_index(r.face_labels, truth["face_labels"]) > 0.99
     assert found == 20
@@ -376,7 +378,7 @@ def test_real_rig_fresh_poses(name, capsys):
     poses = samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"], d["gt_parents"], 20, seed=1)
     scan = S.Scan(d["vertices"], d["faces"], displacements=poses)
     L = len(np.unique(d["gt_face_labels"]))
-    r = F.fit(scan, L)
+    r = artdef_addon.fit(scan, L)
     ari = quality.adjusted_rand_index(r.face_labels, d["gt_face_labels"])
     diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
     _, err = quality.true_joint_errors(r, d["gt_joints"], d["gt_parents"], d["gt_face_labels"])
@@ -410,7 +412,7 @@ def test_refined_skin_fits_joints_of_fully_blended_links(monkeypatch):
     diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
     within = {}
     for skin in ("seam", "refined"):
-        r = F.fit(scan, len(bones), skin=skin)
+        r = artdef_addon.fit(scan, len(bones), skin=skin)
         assert quality.adjusted_rand_index(r.face_labels, gl) == 1.0
         _, err = quality.true_joint_errors(r, d["gt_joints"], d["gt_parents"], gl)
         within[skin] = int(np.sum(err / diag < 0.02))
