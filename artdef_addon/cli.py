@@ -260,33 +260,33 @@ def parse_frames(text: str | None):
 FRAME_LIMIT = 2 ** 31 - 1
 
 
-def blender_layer():
-    """The Blender layer's headless module (``operators/headless.py``), for --blend/--glb/--png.
+def blender_entry() -> str:
+    """The Blender side's entry point of this command line, ``scripts/artdef_fit.py``.
 
-    The core never imports bpy (not even lazily): the Blender layer does. This command line only
-    loads that module, by its place in the extension, when Blender is asked for (outputs, or an
-    input only Blender reads) — as
-    ``<extension>.operators.headless`` when the core runs inside the installed extension package,
-    else from the file next to this package (a checkout run with ``python -m artdef_addon``).
-    That module checks bpy, registers the extension and builds the rig from the result this
-    command already fitted (one fit per command).
-    """
-    import importlib
-    import importlib.util
-    parent = __package__.rpartition(".")[0]
-    if parent:
-        return importlib.import_module(parent + ".operators.headless")
-    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "operators", "headless.py")
-    name = "artdef_headless_entry"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or not os.path.isfile(path):
-        raise _BadInput(f"--blend/--glb/--png need the Blender layer ({path} is missing)")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+    The core never imports the Blender layer (not even lazily, not by a file path): a command that
+    needs Blender (--blend/--glb/--fbx/--png, or an input only Blender reads) is handed whole to
+    this script (:func:`hand_to_blender`), which runs the same command line with the Blender layer
+    (``operators/headless.py``) passed in (``main(argv, blender=...)``). Run inside Blender
+    (``blender -b -P scripts/artdef_fit.py -- ...``) it is the entry point from the start."""
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts", "artdef_fit.py")
+    if not os.path.isfile(path):
+        raise _BadInput(f"--blend/--glb/--fbx/--png and animated inputs need the Blender side's entry point "
+                        f"({path} is missing)")
+    return path
+
+
+def hand_to_blender(argv, replace: bool) -> int:
+    """Run the command ``argv`` through :func:`blender_entry` with this Python: as this process
+    (``replace``: the command line's own process, ``python -m artdef_addon``; the exit code, output
+    and signals are the entry point's) or as a child whose exit code is returned (a caller of
+    :func:`main` in its own process)."""
+    args = [sys.executable, blender_entry(), "--", *argv]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    if replace and os.name == "posix":
+        os.execv(sys.executable, args)
+    import subprocess
+    return subprocess.call(args)
 
 
 #: the largest coordinate (rest position plus displacement) the Blender outputs take: Blender holds
@@ -318,7 +318,9 @@ def _utf8(path: str) -> bool:
     return True
 
 
-def _cmd_fit(a) -> int:
+def _cmd_fit(a, headless=None, hand_over=None) -> int:
+    """The fit command. ``headless``: the Blender layer; without it, once the command's own checks
+    have passed, a command that needs Blender is run by ``hand_over()`` (:func:`hand_to_blender`)."""
     from . import api, files
     from . import cost as _cost
     from . import result as result_module
@@ -368,7 +370,6 @@ def _cmd_fit(a) -> int:
         options = FitOptions(**given)          # the one check of the settings
     except OptionsError as exc:
         raise _BadInput(str(exc)) from None
-    headless = None
     if blender or kind != "npz":
         # Blender's names and file paths are UTF-8 text: a name that is not (bytes a POSIX file name
         # may hold) failed after the fit as "internal error: TypeError: BlendDataMeshes.new() ...
@@ -384,7 +385,8 @@ def _cmd_fit(a) -> int:
         # could leave the probe behind (blender_output's log is a temporary file)
         import tempfile
         tempfile.gettempdir()
-        headless = blender_layer()
+        if headless is None:
+            return hand_over()
         try:
             headless.require_bpy()
         except RuntimeError as exc:
@@ -506,11 +508,15 @@ def _on_sigterm(signum, frame):
     raise _Terminated
 
 
-def main(argv=None) -> int:
+def main(argv=None, blender=None) -> int:
     """Run the command line; returns the exit code (README, "Exit codes and guarantees"):
     0 success, 2 bad input or unusable output path (one line, nothing written), 1 a failure while
     working or writing (one line, earlier files intact), 130 interrupted (Ctrl-C; nothing written),
-    143 terminated (SIGTERM, handled as Ctrl-C while the command runs)."""
+    143 terminated (SIGTERM, handled as Ctrl-C while the command runs).
+
+    ``blender``: the Blender layer (``operators/headless.py``), passed by the Blender side's entry
+    point (:func:`blender_entry`); without it a command that needs Blender is handed to that entry
+    point (:func:`hand_to_blender`: with ``argv`` None, as this process)."""
     import signal
     try:
         old = signal.signal(signal.SIGTERM, _on_sigterm)
@@ -519,7 +525,7 @@ def main(argv=None) -> int:
     streams = sys.stdout, sys.stderr
     sys.stdout, sys.stderr = (s if s is None else _Unbroken(s) for s in streams)
     try:
-        return _main(argv)
+        return _main(argv, blender)
     finally:
         sys.stdout, sys.stderr = streams
         if old is not None:         # the caller's handler again (tests and scripts call main in-process)
@@ -569,11 +575,12 @@ class _Unbroken:
         return getattr(self._stream, name)
 
 
-def _main(argv):
+def _main(argv, blender=None):
     from .files import OutputError
     from .scan import ScanError
     _committed.clear()
     import warnings
+    replace = argv is None
     given, argv, i = list(sys.argv[1:] if argv is None else argv), [], 0
     while i < len(given):
         # a range starting below zero ("--frames -5:3") would read as an option to argparse
@@ -589,7 +596,9 @@ def _main(argv):
             # numpy's overflow / invalid-value notes on extreme but accepted scans (coordinates near
             # scan.MAX_MAGNITUDE) are not the user's to act on: the command prints its one line
             warnings.simplefilter("ignore", RuntimeWarning)
-            return {"fit": _cmd_fit, "sample": _cmd_sample, "info": _cmd_info}[a.command](a)
+            if a.command == "fit":
+                return _cmd_fit(a, blender, lambda: hand_to_blender(given, replace))
+            return {"sample": _cmd_sample, "info": _cmd_info}[a.command](a)
     except (_BadInput, ScanError, OptionsError, OutputError, OptionError) as exc:
         return _fail(" ".join(str(exc).split()) or "bad input")
     except KeyboardInterrupt as exc:

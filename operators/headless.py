@@ -6,9 +6,10 @@ scene gets the scan's mesh and the rig built from that result by ``ops.apply_res
 Fit operator does after its job), then any of the .blend, a glTF binary made by Blender's own
 exporter (skinned mesh, morph targets, animation) and a Workbench render are written.
 
-This module belongs to the Blender layer. The core's command line loads it by its place in the
-extension only when Blender outputs are asked for (see ``artdef_addon.cli._blender_layer``), so
-it must also work loaded on its own from its file: no relative imports; the registered
+This module belongs to the Blender layer. The Blender side's entry point of the command line,
+``scripts/artdef_fit.py``, passes it to ``artdef_addon.cli.main`` (``python -m artdef_addon``
+hands a command that needs Blender to that script); the script loads it from its file when it
+runs from a checkout, so it must work loaded on its own: no relative imports; the registered
 extension's modules are reached through :func:`ensure_registered`'s package name. Works with the
 ``bpy`` module (``pip install bpy``) and inside Blender (``blender -b -P scripts/artdef_fit.py --
 fit ...``).

@@ -277,7 +277,7 @@ def test_greens_blend_keeps_live_drivers(greens_glb):
 
 _KEYED_EXPORT = """
 import sys, bpy
-from artdef_addon.cli import blender_layer; headless = blender_layer()
+import os, runpy, artdef_addon; headless = runpy.run_path(os.path.join(os.path.dirname(os.path.dirname(artdef_addon.__file__)), 'scripts', 'artdef_fit.py'))['blender_layer']()
 bpy.ops.wm.open_mainfile(filepath=sys.argv[1])
 scene = bpy.context.scene
 arm = [o for o in bpy.data.objects if o.type == 'ARMATURE'][0]
@@ -388,7 +388,7 @@ def test_artdef_fit_script_runs_with_the_bpy_module(rod_scan, tmp_path):
 
 def test_build_outputs_without_bpy_says_how_to_get_it(tmp_path):
     code = ("import sys; sys.modules['bpy'] = None\n"
-            "from artdef_addon.cli import blender_layer; headless = blender_layer()\n"
+            "import os, runpy, artdef_addon; headless = runpy.run_path(os.path.join(os.path.dirname(os.path.dirname(artdef_addon.__file__)), 'scripts', 'artdef_fit.py'))['blender_layer']()\n"
             "try:\n"
             "    headless.require_bpy()\n"
             "    raise SystemExit('require_bpy() did not raise')\n"
@@ -448,8 +448,10 @@ def test_triangles_with_a_repeated_vertex_keep_every_blender_output(rod_scan, tm
     assert accessor(gltf, binary, prim["indices"]).size == 3 * T
     assert len(gltf["skins"][0]["joints"]) == LINKS
     # the labels of the kept triangles, whatever Blender does to their corner order
-    from artdef_addon.cli import blender_layer
-    labels_of_kept_faces = blender_layer().labels_of_kept_faces
+    import runpy
+    import artdef_addon
+    entry = os.path.join(os.path.dirname(os.path.dirname(artdef_addon.__file__)), "scripts", "artdef_fit.py")
+    labels_of_kept_faces = runpy.run_path(entry)["blender_layer"]().labels_of_kept_faces
     faces = np.array([[0, 1, 2], [2, 3, 4], [4, 4, 5], [1, 2, 3]])
     labels = np.array([7, 8, 9, 10])
     kept = np.array([[3, 1, 2], [4, 2, 3], [0, 1, 2]])

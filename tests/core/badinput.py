@@ -23,9 +23,9 @@ def digest(path):
         return hashlib.sha256(f.read()).hexdigest()
 
 
-def run(capsys, *argv):
-    """cli.main in-process: (exit code, stdout, stderr lines)."""
-    code = cli.main([str(a) for a in argv])
+def run(capsys, *argv, blender=None):
+    """cli.main in-process: (exit code, stdout, stderr lines); ``blender``: a Blender layer to pass."""
+    code = cli.main([str(a) for a in argv], blender=blender)
     out, err = capsys.readouterr()
     return code, out, [line for line in err.splitlines() if line.strip()]
 

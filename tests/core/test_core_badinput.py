@@ -359,9 +359,8 @@ def test_positions_beyond_blenders_floats_are_refused_before_work(rod, tmp_path,
     _no_fit(monkeypatch)
     fake = type("Headless", (), {"require_bpy": staticmethod(lambda: None),
                                  "build_outputs": staticmethod(lambda *a, **k: pytest.fail("Blender ran"))})
-    monkeypatch.setattr(cli, "blender_layer", lambda: fake)
     code, _, err = run(capsys, "fit", p, "--links", "3", "-o", tmp_path / "o.npz", "--blend", tmp_path / "o.blend",
-                       "--glb", tmp_path / "o.glb")
+                       "--glb", tmp_path / "o.glb", blender=fake)
     assert code == 2 and len(err) == 1 and "--blend/--glb: the scan's positions reach" in err[0], err
     assert "32-bit floats" in err[0] and "internal error" not in err[0]
     assert sorted(os.listdir(tmp_path)) == ["big.npz"]

@@ -290,8 +290,7 @@ def test_a_name_blender_cannot_hold_is_refused_before_work(rod, tmp_path, capsys
     _no_fit(monkeypatch)
     fake = type("Headless", (), {"require_bpy": staticmethod(lambda: None),
                                  "build_outputs": staticmethod(lambda *a, **k: pytest.fail("Blender ran"))})
-    monkeypatch.setattr(cli, "blender_layer", lambda: fake)
     for scan, blend in ((bad + ".npz", "o.blend"), ("rod.npz", bad + ".blend")):
-        code, _, err = run(capsys, "fit", tmp_path / scan, "--links", "3", "--blend", tmp_path / blend)
+        code, _, err = run(capsys, "fit", tmp_path / scan, "--links", "3", "--blend", tmp_path / blend, blender=fake)
         assert code == 2 and len(err) == 1 and "r\\xe9" in err[0] and "not: rename it" in err[0], err
     assert sorted(os.listdir(tmp_path)) == sorted([bad + ".npz", "rod.npz"])
