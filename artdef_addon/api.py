@@ -120,6 +120,16 @@ def _as_scan(scan) -> Scan:
     return Scan(**{n: getattr(scan, n) for n in names})
 
 
+def _checked(scan):
+    """The boundary of the public calls: ``(checked scan, its welded scan, the weld)`` — ``scan`` as
+    this core's :class:`Scan`, checked once (:func:`scan.validate_scan`; a checked scan is not
+    checked again), copies at seams one point to the fit (:func:`seams.weld_scan`). Everything
+    behind :func:`fit`, :func:`segment` and :func:`cached` takes the welded scan as it is."""
+    stored = validate_scan(_as_scan(scan))
+    welded, weld = _seams.weld_scan(stored)
+    return stored, welded, weld
+
+
 def _options(options, overrides) -> FitOptions:
     if options is None:
         options = FitOptions()
@@ -155,14 +165,12 @@ def fit(scan: Scan, links, options: FitOptions | None = None, progress=None, **o
 
 def _fit_pooled(scan, links, o: FitOptions, progress):
     """:func:`fit` inside its pool."""
-    scan = _as_scan(scan)
     auto = isinstance(links, str) and links.strip().lower() == "auto"
     if not auto:
         if isinstance(links, bool) or not isinstance(links, (int, np.integer)):
             raise ScanError(f"links must be a whole number or 'auto', got {links!r}")
         links = int(links)
-    stored = validate_scan(scan)
-    scan, weld = _seams.weld_scan(stored)      # copies at seams are one point to the fit
+    stored, scan, weld = _checked(scan)      # copies at seams are one point to the fit
     requested, o = o, o.resolved(scan.kind)
     if o.mode == "pseudo" and scan.greens is None:
         raise OptionsError("pseudo-articulation needs a Green's-matrix scan (one model per load column)",
@@ -212,7 +220,7 @@ def segment(scan: Scan, links: int, options: FitOptions | None = None, progress=
     triangle for ``links`` links, whether the reduced method ran and the core's notes — from the
     same segmentation a :func:`fit` with these options makes (and keeps)."""
     o = _options(options, {})
-    scan, _ = _seams.weld_scan(validate_scan(_as_scan(scan)))
+    _, scan, _ = _checked(scan)
     o = o.resolved(scan.kind)
     with _procs.pooled(o.processes):
         key, seg = _checkout(scan, o, progress)
@@ -229,7 +237,7 @@ def cached(scan: Scan, options: FitOptions | None = None):
     """The kept segmentation that a fit of ``scan`` with ``options`` would reuse, or None
     (nothing computed; for front ends that show whether a preview will be instant)."""
     o = _options(options, {})
-    scan, _ = _seams.weld_scan(validate_scan(scan))
+    _, scan, _ = _checked(scan)
     o = o.resolved(scan.kind)
     est, _ = plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind, o)
     return _SEGMENTERS.get(_key(scan, o, est.reduced))

@@ -139,8 +139,7 @@ def _cmd_sample(a) -> int:
         sc = samples.make(a.name, **kw)
     except (ValueError, TypeError) as exc:
         raise _BadInput(str(exc)) from None
-    from .scan import validate_scan
-    validate_scan(sc)       # a sample is written only if it can be fitted
+    # a sample is checked where it is made (samples): it is written only if it can be fitted
     files.write_scan(a.output, sc)
     print(f"wrote {a.output}: {a.name}, {sc.n_vertices} vertices, {sc.n_faces} triangles, "
           f"{sc.n_fields} fields ({sc.kind})")

@@ -15,16 +15,28 @@
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .options import FloatRange, IntRange
-from .scan import Scan
+from .scan import Scan, validate_scan
 
 NAMES = ("rod", "branching", "greens_rod", "elastic")
 #: the ranges of the sample command's numeric settings (``python -m artdef_addon sample``), by name
 RANGES = {"fields": IntRange(1, 1000), "noise": FloatRange(0.0, 100.0), "seed": IntRange(0, 2 ** 63 - 1)}
 _SQUARE = np.array([(-1, -1), (0, -1), (1, -1), (1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0)], dtype=float)
+
+
+def _checked(build):
+    """A sample builder whose scan is checked where it is made (:func:`scan.validate_scan`): the
+    fit's modules take it as it is."""
+    @functools.wraps(build)
+    def checked(*args, **kw):
+        scan, truth = build(*args, **kw)
+        return validate_scan(scan), truth
+    return checked
 
 
 def _tube(length: int):
@@ -87,6 +99,7 @@ def _chain_fk(joints, rotations):
     return np.array(Rs), np.array(ts)
 
 
+@_checked
 def rod(blend: float = 1.0, n_fields: int = 3, seed: int = 0, max_deg: float = 25.0, min_deg: float = 5.0):
     """The paper's three-link rod (Table 1)."""
     x0, faces = _tube(36)
@@ -203,6 +216,7 @@ def _vertex_normals(v, f):
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
 
 
+@_checked
 def branching(n_fields: int = 12, noise: float = 0.0, bulges: bool = False, disconnected: bool = False,
               seed: int = 1, max_deg: float = 40.0, blend: float = 1.0):
     """Hub + five two-segment arms: 11 links in a branching tree (hub is link 0, the root).
@@ -277,6 +291,7 @@ def _random_axis(rng):
     return a / np.linalg.norm(a)
 
 
+@_checked
 def greens_rod(loads_x=(8, 18, 30, 35), stiffness=(200.0, 150.0, 100.0), dent=0.2, probe_load: float = 1.0,
                blend: float = 1.0):
     """A Green's-matrix scan of the rod fixed at x = 0: springs at the joints plus local dents."""
@@ -313,6 +328,7 @@ def greens_rod(loads_x=(8, 18, 30, 35), stiffness=(200.0, 150.0, 100.0), dent=0.
     return scan, truth
 
 
+@_checked
 def elastic(n_fields: int = 12, seed: int = 0, bend_deg: float = 0.0, bulge: float = 0.3, length: int = 36,
             move_deg: float = 30.0):
     """A tube wobbling like jelly: per field a smooth bend (bend angles cubic along the length, up to

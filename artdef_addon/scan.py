@@ -193,6 +193,13 @@ def _as_index(name, a, n, ndim=1):
     return a.astype(np.int64)
 
 
+def is_checked(scan: Scan) -> bool:
+    """Whether ``scan`` came from :func:`validate_scan` and still holds exactly the arrays it
+    checked: the fit's own modules take such a scan as it is (the scan is checked once, where it
+    enters: a file read, a Blender mesh read, :func:`artdef_addon.fit`, a built-in sample)."""
+    return scan._checked is not None and all(a is b for a, b in zip(scan._checked, scan._inputs()))
+
+
 def validate_scan(scan: Scan) -> Scan:
     """Check shapes, dtypes, finiteness and index ranges; return a normalised copy.
 
@@ -205,7 +212,7 @@ def validate_scan(scan: Scan) -> Scan:
     it as is instead of re-reading every field; assigning a new array to it (or any
     scan not made here) is checked in full.
     """
-    if scan._checked is not None and all(a is b for a, b in zip(scan._checked, scan._inputs())):
+    if is_checked(scan):
         return scan
     out = _check_scan(scan)
     for name in ("vertices", "faces", "greens", "displacements", "load_vertices",

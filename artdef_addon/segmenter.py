@@ -20,7 +20,7 @@ from .blas import single_threaded
 from .metric import field_features, rest_geometry
 from .parallel import neighbour_stream
 from .result import FitCancelled, report as _report
-from .scan import Scan, ScanError, validate_scan
+from .scan import Scan, ScanError, is_checked
 from .skinning import field_sample
 
 #: tracked scans with more fields are segmented on this many of them (:func:`skinning.field_sample`)
@@ -57,7 +57,8 @@ class Segmenter:
     def _build(self, scan, progress, refine_seams, strategy, reduce, budget, max_units):
         if strategy not in STRATEGIES + ("auto",):
             raise ScanError(f"strategy must be one of {STRATEGIES + ('auto',)}, got {strategy!r}")
-        scan = validate_scan(scan)
+        if not is_checked(scan):     # checked where it entered (artdef_addon.fit, load_scan, samples)
+            raise ScanError("the Segmenter takes a checked scan (scan.validate_scan, artdef_addon.load_scan)")
         if strategy == "auto":
             strategy = "paper" if scan.kind == "greens" else "summed"
         self.refine = refine_seams

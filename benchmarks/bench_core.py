@@ -4,7 +4,7 @@
     both residual directions, the |·| distance, packed into the condensed vector) against a plain
     dense product ``A @ B.T`` of two (T, 17) float64 arrays into a T×T result — the same inner
     dimension and output shape as the residual GEMM. Median seconds of ``--repeats`` runs.
-(b) End to end: ``fit.fit`` on generated articulated scans (``generate.branching_scan``, 11 links)
+(b) End to end: ``pipeline.fit`` on generated articulated scans (``generate.branching_scan``, 11 links)
     of about 1k, 5k, 20k triangles × 10 and 50 fields; seconds per stage, peak resident memory of
     a fresh subprocess per case (``VmHWM``, and the part above the resident size just before the
     fit), the adjusted Rand index against the true face labels and the articulation-only error.

@@ -49,7 +49,7 @@ sys.path.insert(0, ROOT)
 
 import artdef_addon  # noqa: E402
 from artdef_addon import model, pipeline as PL, quality, samples, segmenter as SG  # noqa: E402
-from artdef_addon.scan import Scan, ScanError  # noqa: E402
+from artdef_addon.scan import Scan, ScanError, validate_scan  # noqa: E402
 from artdef_addon.options import FitOptions  # noqa: E402
 
 try:
@@ -146,7 +146,7 @@ def load_sets(data_dir: str, fresh_fields: int, bone_count: int, max_tri: int | 
         if max_tri and len(d["faces"]) > max_tri:
             print(f"skipping {name} ({len(d['faces'])} triangles > {max_tri}; --quick)")
             continue
-        scan = Scan(d["vertices"], d["faces"], displacements=d["displacements"])
+        scan = validate_scan(Scan(d["vertices"], d["faces"], displacements=d["displacements"]))
         truth = None
         if "gt_face_labels" in d:
             truth = dict(face_labels=d["gt_face_labels"], joints=d["gt_joints"], parents=d["gt_parents"],
@@ -158,7 +158,7 @@ def load_sets(data_dir: str, fresh_fields: int, bone_count: int, max_tri: int | 
         if truth is not None and int(np.sum(truth["parents"] < 0)) == 1:
             u = samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"], d["gt_parents"],
                                      n_fields=fresh_fields, max_deg=45.0, seed=seed)
-            yield name + " (fresh poses)", Scan(d["vertices"], d["faces"], displacements=u), truth, L
+            yield name + " (fresh poses)", validate_scan(Scan(d["vertices"], d["faces"], displacements=u)), truth, L
 
 
 # --------------------------------------------------------------------------- main comparison

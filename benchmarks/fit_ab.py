@@ -46,9 +46,11 @@ def one(repo: str, name: str, links: int | None, fresh: int | None, data: str) -
     try:
         from artdef_addon.options import FitOptions
         from artdef_addon.pipeline import fit as pipeline_fit
+        from artdef_addon.scan import validate_scan
         from artdef_addon.segmenter import Segmenter
 
         def fit_refined(scan, links):
+            scan = validate_scan(scan)
             return pipeline_fit(scan, links, FitOptions(skin="refined"), segmenter=Segmenter(scan))
     except ImportError:         # a core from before the pipeline had its own module (an A/B of commits)
         from artdef_addon import fit as F

@@ -24,7 +24,7 @@ import scipy.sparse as sp
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from artdef_addon import samples  # noqa: E402
-from artdef_addon.scan import Scan  # noqa: E402
+from artdef_addon.scan import Scan, validate_scan  # noqa: E402
 
 BASE_TRIANGLES = 1072  # triangles of samples.branching's mesh
 
@@ -115,7 +115,7 @@ def branching_scan(target_triangles: int = 1000, n_fields: int = 10, seed: int =
     labels = (w[faces].sum(axis=1)).argmax(axis=1)
     out = dict(face_labels=labels, joints=joints, parents=truth["parents"].copy(), weights=w,
                n_links=int(len(np.unique(labels))), split=n)
-    return Scan(x0, faces, displacements=u), out
+    return validate_scan(Scan(x0, faces, displacements=u)), out
 
 
 if __name__ == "__main__":

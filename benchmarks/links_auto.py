@@ -54,7 +54,7 @@ def row(data: str, name: str, kind: str, verify: bool, seed: int = 1) -> None:
     L = len(np.unique(d["gt_face_labels"]))
     u = d["displacements"] if kind == "own" else samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"],
                                                                       d["gt_parents"], 20, seed=seed)
-    scan = S.Scan(d["vertices"], d["faces"], displacements=u)
+    scan = S.validate_scan(S.Scan(d["vertices"], d["faces"], displacements=u))
     mx = max(30, int(1.5 * L))
     est, _ = api.plan(scan.n_faces - len(scan.degenerate_faces), scan.n_fields, scan.n_vertices, scan.kind,
                       auto=True, max_links=mx)

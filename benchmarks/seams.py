@@ -28,7 +28,7 @@ sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 import report  # noqa: E402
 import artdef_addon  # noqa: E402
 from artdef_addon import api, pipeline as PL  # noqa: E402
-from artdef_addon.scan import Scan  # noqa: E402
+from artdef_addon.scan import Scan, validate_scan  # noqa: E402
 from seam_files import split  # noqa: E402
 
 SETS = ("gltf_CesiumMan", "gltf_Fox", "threejs_RobotExpressive")
@@ -51,7 +51,7 @@ def timed(scan, links, weld, repeats):
     for _ in range(repeats):
         api.clear_cache()
         t = time.perf_counter()
-        r = artdef_addon.fit(scan, links) if weld else PL.fit(scan, links)
+        r = artdef_addon.fit(scan, links) if weld else PL.fit(validate_scan(scan), links)
         secs.append(time.perf_counter() - t)
     return r, float(np.median(secs))
 

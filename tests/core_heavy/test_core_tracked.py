@@ -356,7 +356,7 @@ def test_auto_link_count_rigid_is_one():
     from scipy.spatial.transform import Rotation
     R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
     d = np.stack([scan.vertices @ R.T + [1, 2, 3] - scan.vertices, scan.vertices @ R.T @ R.T - scan.vertices])
-    choice = linkcount.choose_links(SG.Segmenter(S.Scan(scan.vertices, scan.faces, displacements=d)), 8)
+    choice = linkcount.choose_links(SG.Segmenter(S.validate_scan(S.Scan(scan.vertices, scan.faces, displacements=d))), 8)
     assert choice.links == 1
 
 
