@@ -18,7 +18,7 @@ def candidate_links(vertices: np.ndarray, faces: np.ndarray, incidence: np.ndarr
     (Dijkstra from each link's vertices; links on another connected piece are never candidates),
     so a coarse mesh whose edges are longer than the radius still reaches its neighbours. A
     vertex's own links are always candidates. A vertex that reaches no link (in no triangle, which
-    the scan format allows: METHOD §2 segments triangles, so nothing ties it to a link) has every
+    the scan format allows: docs/method_notes.md §2 segments triangles, so nothing ties it to a link) has every
     link as candidate: the data then choose its skin, by the single-link fit and the simplex solve,
     instead of a 0/0 weight row.
     """

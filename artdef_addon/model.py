@@ -198,7 +198,8 @@ def harden(s, p_max):
 
 def linear_displacement(parents, heads, frames, weights, params, x) -> np.ndarray:
     """The rig's first-order (linearised) motion: d/dε of the skinned positions of ``x`` (N, 3)
-    at pose ε·``params`` (..., L, 6), at ε = 0 → (..., N, 3) (paper Eq. 2 linearised; METHOD §7.3).
+    at pose ε·``params`` (..., L, 6), at ε = 0 → (..., N, 3) (paper Eq. 2 linearised;
+    docs/method_notes_model.md §7.3).
 
     At the rest pose every link transform is the identity and R_z R_y R_x has derivative
     [e_x]× dx + [e_y]× dy + [e_z]× dz, so link l's local transform moves by A_l = [B_l ω_l]×,
@@ -224,7 +225,7 @@ BUMP_POWER = 6
 
 
 def hardening_slope(p_max) -> float:
-    """d s̃/ds at s = 0 of :func:`harden` (1 when off): p_max ln(p_max/(p_max − 1)) (METHOD §10)."""
+    """d s̃/ds at s = 0 of :func:`harden` (1 when off): p_max ln(p_max/(p_max − 1)) (docs/method_notes_model.md §10)."""
     return 1.0 if p_max is None else float(p_max * np.log(p_max / (p_max - 1.0)))
 
 

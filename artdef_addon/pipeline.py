@@ -1,12 +1,13 @@
 """The fit of one link count: a :class:`~.segmenter.Segmenter`, then :data:`~.stages.STAGES`.
 
-:func:`fit` runs every stage on one :class:`~.stages.FitState` (paper §5–§7, METHOD §2–§10):
+:func:`fit` runs every stage on one :class:`~.stages.FitState` (paper §5–§7; docs/method_notes.md §2–§5,
+docs/method_notes_model.md §6–§10):
 
 1. ``segment``    cut to k, split along every seam, merge on Λ with motion centroids (§5.2);
    Green's scans use two levels: per block column, then across all columns (§7.2, A-9);
 2. ``motions``    link motions: robust medoid or least squares (§6);
-3. ``relabel``    tracked scans: faces to the link dominating their skin, link swaps (METHOD §6);
-4. ``skin``       seam-blended weights, or the refined skin decomposition (§7, METHOD §8);
+3. ``relabel``    tracked scans: faces to the link dominating their skin, link swaps (docs/method_notes_model.md §6);
+4. ``skin``       seam-blended weights, or the refined skin decomposition (§7, docs/method_notes_model.md §8);
    ``split``      tracked scans, refined skin: links holding two bones cut in two (:mod:`splits`);
 5. ``joints``     joint centres (§4, §6), the minimum spanning tree over joint cost, ground /
    world joint;

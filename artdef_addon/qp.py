@@ -2,7 +2,7 @@
 
 Each vertex's weights minimise a small quadratic wᵀQw − 2qᵀw with Σw = 1 (and, ``convex``, w ≥ 0)
 on its candidate links; :func:`simplex_least_squares` solves a batch of them by an active set on
-one KKT system a row (METHOD §8).
+one KKT system a row (docs/method_notes_model.md §8).
 """
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Seam-blended skin weights (paper Eq. 2, "blended linearly" at the seams; METHOD §8, choice A-15)."""
+"""Seam-blended skin weights (paper Eq. 2, "blended linearly" at the seams; docs/method_notes_model.md §8,
+choice A-15)."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""The refined skin: alternating weight solves and link-motion updates (paper §7, METHOD §8).
+"""The refined skin: alternating weight solves and link-motion updates (paper §7, docs/method_notes_model.md §8).
 
 :func:`alternate` decomposes the fields into convex per-vertex weights (at most 4 influences) and
 link motions; the weight solve of each round is :func:`.qp.simplex_least_squares` on each vertex's

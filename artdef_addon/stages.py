@@ -1,4 +1,5 @@
-"""The fit's named stages (paper §5–§7, METHOD §2–§10) on one :class:`FitState`.
+"""The fit's named stages (paper §5–§7; docs/method_notes.md §2–§5, docs/method_notes_model.md §6–§10) on
+one :class:`FitState`.
 
 The fit after the :class:`~.segmenter.Segmenter`'s cached features and trees is a fixed list of
 named stages (:data:`STAGES`), each a module-level function of one :class:`FitState` that reads
@@ -148,7 +149,7 @@ def link_motions(x0, fields, faces, labels, L, motion, seg, medoids, used_fields
 
 
 def stage_segment(st: FitState) -> None:
-    """segment (§5, METHOD §2–§5): ``labels (T,)`` and the link medoids for k links from the
+    """segment (§5, docs/method_notes.md §2–§5): ``labels (T,)`` and the link medoids for k links from the
     Segmenter (ν Eq. 4, ε Eq. 5, average linkage cut to k, seam split and Λ merge, §5.2)."""
     st.fields = select_fields(st.scan.fields(), st.field_idx)
     st.labels_valid, st.medoids, st.used_fields = st.seg.segment(st.links, fields=st.seg_fields)
@@ -163,7 +164,7 @@ def stage_motions(st: FitState) -> None:
 
 
 def stage_relabel(st: FitState) -> None:
-    """relabel (METHOD §6, a deviation for tracked scans): faces to the link that dominates
+    """relabel (docs/method_notes_model.md §6, a deviation for tracked scans): faces to the link that dominates
     their skin, link swaps, then the links' motions again; ``labels (T,)``, ``R``, ``t``.
     Green's scans keep the paper's segmentation."""
     scan, seg, L, P = st.scan, st.seg, st.n_links, len(st.field_idx)
@@ -213,7 +214,7 @@ def _refined_skin(st: FitState, R: np.ndarray, t: np.ndarray, w_init: np.ndarray
 
 
 def stage_skin(st: FitState) -> None:
-    """skin (§7, METHOD §8): ``weights (N, L)``. ``"seam"``: the paper's linear blend across
+    """skin (§7, docs/method_notes_model.md §8): ``weights (N, L)``. ``"seam"``: the paper's linear blend across
     each seam's one-ring. ``"refined"``: the skin decomposition (convex per-vertex weights, at
     most 4 influences) with its own link motions ``Rs (P, L, 3, 3)``, ``ts (P, L, 3)``.
 
@@ -390,8 +391,8 @@ def stage_bones(st: FitState) -> None:
 
 
 def stage_pose(st: FitState) -> None:
-    """pose model (§7, METHOD §7): pose parameters ``params (P, L, 6)`` from the link motions (the
-    refined skin's when it ran), the rig's motions ``Rf``, ``tf`` by forward kinematics, and the
+    """pose model (§7, docs/method_notes_model.md §7): pose parameters ``params (P, L, 6)`` from the link
+    motions (the refined skin's when it ran), the rig's motions ``Rf``, ``tf`` by forward kinematics, and the
     link motions reported ``Ro``, ``to`` (the ones the rig reproduces)."""
     R, t = (st.R, st.t) if st.Rs is None else (st.Rs, st.ts)
     st.params = _model.params_from_motions(st.parents, st.heads, st.frames, st.grounded, R, t)
@@ -400,7 +401,7 @@ def stage_pose(st: FitState) -> None:
 
 
 def stage_residuals(st: FitState) -> None:
-    """residuals (§7, METHOD §9–§10): rest-space residual ``(P, N, 3)``, each link's own rigid
+    """residuals (§7, docs/method_notes_model.md §9–§10): rest-space residual ``(P, N, 3)``, each link's own rigid
     RMS ``(P, L)``, the articulation and total RMS and the Karni–Gotsman figures
     (docs/metrics.md). Blocks of fields at once (:data:`RESIDUAL_BLOCK_BYTES`): the skin of a
     field is its blended transform B_v x + T_v, B_v = Σ_l w_vl R_l (N, 3, 3), T_v = Σ_l w_vl t_l,
