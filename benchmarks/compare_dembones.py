@@ -48,9 +48,13 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 
 import artdef_addon  # noqa: E402
-from artdef_addon import model, pipeline as PL, quality, samples, segmenter as SG  # noqa: E402
+from artdef_addon import model, pipeline as PL, procs, quality, samples, segmenter as SG  # noqa: E402
 from artdef_addon.scan import Scan, ScanError, validate_scan  # noqa: E402
 from artdef_addon.options import FitOptions  # noqa: E402
+from peak import reset_peak, status_kb  # noqa: E402
+
+#: the main fit's processes (``--jobs``; 0: one per core, the default of FitOptions.jobs)
+JOBS = 0
 
 try:
     from py_dem_bones.portable import _prepare_solver, _read_skinning_result
@@ -109,9 +113,24 @@ def run_artdef(scan: Scan, L, kw: dict, segmenter=None):
 
 
 def cpu_seconds() -> float:
-    """CPU time of this process, every thread (OpenMP's and OpenBLAS's included), in seconds: beside the
-    wall time it shows how many of the machine's cores a program kept busy."""
-    return time.process_time()
+    """CPU time of this process, every thread (OpenMP's and OpenBLAS's included), and of its ended child
+    processes (a fit's pool, closed with the fit), in seconds: beside the wall time it shows how many of
+    the machine's cores a program kept busy."""
+    import resource
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
+
+
+def peak_start() -> int:
+    """Reset this process's peak resident size; returns the resident size (kB) it starts from."""
+    reset_peak()
+    return status_kb("VmRSS")
+
+
+def peak_mb(start_kb: int) -> float:
+    """The rise of this process's peak resident size since :func:`peak_start`, in MB (a fit's pool
+    starts only on scans of 100k triangles or vertices, so on these sets this process is all of it)."""
+    return max(0, status_kb("VmHWM") - start_kb) / 1024.0
 
 
 def run_dembones(x0, faces, X, bones: int, nnz: int, iters: int):
@@ -201,15 +220,21 @@ def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
         seg = None
         for i, (label, kw) in enumerate(variants):
             try:
-                times, cpus = [], []
+                times, cpus, peaks, serial = [], [], [], []
                 for _ in range(reps):
                     if i == 0:  # the main fit, from scratch; later variants reuse its distances
-                        t0, c0 = time.perf_counter(), cpu_seconds()
-                        seg = SG.Segmenter(scan)
-                        res = PL.fit(scan, L, FitOptions(**kw), segmenter=seg)
-                        secs, cpus_i = time.perf_counter() - t0, cpu_seconds() - c0
+                        for jobs in (1, JOBS):      # --jobs 1 and the default, side by side
+                            m0 = peak_start()
+                            t0, c0 = time.perf_counter(), cpu_seconds()
+                            with procs.pooled(jobs or procs.cores()):
+                                seg = SG.Segmenter(scan)
+                                res = PL.fit(scan, L, FitOptions(**kw), segmenter=seg)
+                            secs, cpus_i = time.perf_counter() - t0, cpu_seconds() - c0
+                            if jobs == 1:
+                                serial.append((secs, cpus_i, peak_mb(m0), res))
                         err = kg_error(X, artdef_articulation(res, x0))
                         cpus.append(cpus_i)
+                        peaks.append(peak_mb(m0))
                     else:
                         res, secs, err = run_artdef(scan, L, kw, segmenter=seg)
                     times.append(secs)
@@ -224,6 +249,15 @@ def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
             reduced = any(str(n).startswith("reduced method") for n in (getattr(res, "notes", None) or []))
             r = dict(seconds=secs, cpu=cpu, error=err, links=res.n_links, owning=owning, check=check,
                      reported=res.articulation_error_percent, reduced=reduced)
+            if serial:
+                one = serial[-1][3]
+                r.update(peak=float(np.median(peaks)), serial_seconds=float(np.median([s[0] for s in serial])),
+                         serial_cpu=float(np.median([s[1] for s in serial])),
+                         serial_peak=float(np.median([s[2] for s in serial])),
+                         same_rig=bool(np.array_equal(one.face_labels, res.face_labels)
+                                       and np.allclose(one.weights, res.weights, rtol=0, atol=1e-9)
+                                       and np.allclose(one.joints, res.joints, rtol=0, atol=1e-9,
+                                                       equal_nan=True)))
             if truth is not None:
                 r["ari"] = quality.adjusted_rand_index(res.face_labels, truth["face_labels"])
                 je = joint_errors(truth, res, diag)
@@ -233,8 +267,10 @@ def compare(sets, variants, nnz, iters, repeats=3, cheap=5000):
             row["auto"] = auto_links(seg, L)
         if DEMBONES:
             try:
+                m0 = peak_start()
                 runs = [run_dembones(x0, scan.faces, X, L, nnz, iters) for _ in range(reps)]
                 db = runs[-1]
+                db["peak"] = peak_mb(m0)
                 db["seconds"] = float(np.median([d["seconds"] for d in runs]))
                 db["cpu"] = float(np.median([d["cpu"] for d in runs]))
                 lab = face_labels_from_weights(scan.faces, db["weights"])
@@ -335,6 +371,23 @@ def tables(rows, variants) -> str:
             f"{r0['cpu'] / r0['seconds']:.2f}", f"{db['seconds']:.2f}", f"{db['cpu']:.2f}",
             f"{db['cpu'] / db['seconds']:.2f}", f"{r0['seconds'] / db['seconds']:.2f}",
             f"{r0['cpu'] / db['cpu']:.2f}"]) + " |")
+    out += ["", "### Processes: `--jobs 1` against the default, beside Dem Bones", "",
+            f"The main fit ({lb0}) run with one process and with the default (one per core), side by side; "
+            "peak: the rise of the resident peak over the fit (MB, every process of it).", "",
+            "| scan | jobs 1 wall (s) | jobs 1 CPU (s) | jobs 1 peak (MB) | default wall (s) | default CPU (s) "
+            "| default peak (MB) | same rig | Dem Bones wall (s) | Dem Bones CPU (s) | Dem Bones peak (MB) "
+            "| default / Dem Bones wall |",
+            "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    for row in rows:
+        db, r0 = row.get("dembones"), row.get(lb0)
+        if not (r0 and "serial_seconds" in r0):
+            continue
+        dbc = [f"{db['seconds']:.2f}", f"{db['cpu']:.2f}", f"{db.get('peak', 0):.0f}",
+               f"{r0['seconds'] / db['seconds']:.2f}"] if db else ["n/a"] * 4
+        out.append("| " + " | ".join([
+            row["name"].replace("_", "\\_"), f"{r0['serial_seconds']:.2f}", f"{r0['serial_cpu']:.2f}",
+            f"{r0['serial_peak']:.0f}", f"{r0['seconds']:.2f}", f"{r0['cpu']:.2f}", f"{r0['peak']:.0f}",
+            "yes" if r0["same_rig"] else "no", *dbc]) + " |")
     out += ["", "### Structure (scans with a true skeleton)", "",
             "| scan | true links | artdef links | links auto | Dem Bones bones (owning faces) | ARI artdef | ARI Dem Bones "
             "| artdef joint error, median / max % of diagonal (≤ 2%) |",
@@ -435,8 +488,12 @@ def main(argv=None):
     ap.add_argument("--skip-auto-samples", action="store_true")
     ap.add_argument("--auto-max-triangles", type=int, default=6000,
                     help="run --links auto only on scans up to this size (0: never)")
+    ap.add_argument("--jobs", type=int, default=0,
+                    help="processes of the main fit beside its --jobs 1 run (0: one per core, the default)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "compare_dembones.md"))
     a = ap.parse_args(argv)
+    global JOBS
+    JOBS = a.jobs
     t_all = time.perf_counter()
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     env = (f"{platform.machine()}, {cores} cores, Python {platform.python_version()}, numpy {np.__version__}; "
