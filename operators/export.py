@@ -10,7 +10,7 @@ glTF (.glb/.gltf, Blender's glTF exporter) or FBX (Blender's FBX exporter):
   option), so the source character, load empties, helpers and everything
   else in the scene stay out;
 * what the copy drops: the debug colour attributes (links, residual) unless
-  ``debug_attributes``; shape keys and vertex groups that the fit did not make
+  ``debug_attributes`` (the source's own colours, UVs, materials and vertices stay); shape keys and vertex groups that the fit did not make
   (the source's), so input data never rides along silently;
 * one clip per input clip: the armature's replay and the shape-key replay are
   merged into one animation, keyed at the replay's own frames (the source's
@@ -28,6 +28,7 @@ The user's objects, actions, selection and frame range are restored.
 import os
 
 import bpy
+import numpy as np
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
@@ -39,6 +40,8 @@ FORMATS = (('GLB', "glTF Binary (.glb)", "One .glb file"),
            ('GLTF_SEPARATE', "glTF Separate (.gltf + .bin)", "A .gltf with its .bin next to it"),
            ('FBX', "FBX (.fbx)", "Autodesk FBX through Blender's FBX exporter"))
 EXTENSIONS = {'GLB': ".glb", 'GLTF_SEPARATE': ".gltf", 'FBX': ".fbx"}
+#: the colour attributes a fit adds to show links and residuals (left out unless debug_attributes)
+DEBUG_COLOUR_ATTRS = frozenset((rig.COLOR_ATTR, rig.RESIDUAL_COLOR_ATTR))
 
 
 def format_for_path(path):
@@ -90,12 +93,14 @@ def _clean_copy(context, obj, arm, debug_attributes):
     left_out = []
     mesh = new.data
     if not debug_attributes:
-        for attr in list(mesh.color_attributes):
+        for attr in [a for a in mesh.color_attributes if a.name in DEBUG_COLOUR_ATTRS]:
             left_out.append(f"colour attribute '{attr.name}'")
             mesh.color_attributes.remove(attr)
         res = mesh.attributes.get(rig.RESIDUAL_ATTR)
         if res is not None:
             mesh.attributes.remove(res)
+        if len(mesh.color_attributes):       # the source's own colours: the one it showed
+            rig.set_active_colour(mesh, source_colour(mesh).name)
     ours = _artdef_shape_keys(obj)
     keys = mesh.shape_keys
     if keys is not None:
@@ -109,6 +114,31 @@ def _clean_copy(context, obj, arm, debug_attributes):
             left_out.append(f"vertex group '{vg.name}'")
             new.vertex_groups.remove(vg)
     return new, left_out
+
+
+def source_colour(mesh):
+    """The colour attribute the mesh shows that is not one of ArtDef's debug colours (the
+    rendered one, else the first), or None."""
+    own = [a for a in mesh.color_attributes if a.name not in DEBUG_COLOUR_ATTRS]
+    if not own:
+        return None
+    index = mesh.color_attributes.render_color_index
+    shown = mesh.color_attributes[index] if 0 <= index < len(mesh.color_attributes) else None
+    return shown if shown is not None and shown.name not in DEBUG_COLOUR_ATTRS else own[0]
+
+
+def flat_shaded(mesh):
+    """Every face is flat shaded and no custom normals are set: what Blender's glTF importer
+    makes of a file that has no normals (glTF: a viewer then shades every face flat). Written
+    with normals, each face would need vertices of its own."""
+    if getattr(mesh, "has_custom_normals", False) or not len(mesh.polygons):
+        return False
+    sharp = mesh.attributes.get("sharp_face")
+    if sharp is None or sharp.domain != 'FACE' or sharp.data_type != 'BOOLEAN':
+        return False
+    values = np.empty(len(mesh.polygons), dtype=bool)
+    sharp.data.foreach_get("value", values)
+    return bool(values.all())
 
 
 def _driven_bone_channels(arm):
@@ -167,7 +197,12 @@ def _clip_count(obj):
     return len(names) if names is not None else 1
 
 
-def _gltf(path, fmt, clip_name, debug_attributes, step=1, clips=1):
+def _gltf(path, fmt, clip_name, debug_attributes, step=1, clips=1, mesh=None):
+    """Blender's glTF exporter on the selection. The mesh keeps the source file's vertices: no
+    normals where it is flat shaded throughout (:func:`flat_shaded`), no morph-target normals (a
+    shape key's own corner normals split the vertices where its faces are flat; the residual
+    shapes are small corrections whose normals the base mesh's stand for), its own colours."""
+    own_colour = mesh is not None and source_colour(mesh) is not None
     options = dict(
         filepath=path, check_existing=False, export_format=fmt,
         use_selection=True, use_visible=False, use_active_collection=False,
@@ -177,7 +212,8 @@ def _gltf(path, fmt, clip_name, debug_attributes, step=1, clips=1):
         # the NLA Tracks mode allows it (5.1 on; compat.gltf_tracks_drop_armature_node)
         export_armature_object_remove=clips == 1 or compat.gltf_tracks_drop_armature_node(),
         export_influence_nb=4, export_all_influences=False,
-        export_morph=True, export_morph_normal=True, export_morph_animation=True,
+        export_normals=mesh is None or not flat_shaded(mesh),
+        export_morph=True, export_morph_normal=False, export_morph_animation=True,
         export_animations=True, export_force_sampling=True, export_frame_range=False,
         export_frame_step=int(step),
         export_anim_slide_to_zero=False, export_negative_frame='SLIDE',
@@ -185,7 +221,7 @@ def _gltf(path, fmt, clip_name, debug_attributes, step=1, clips=1):
         # clips: one animation per NLA track name (armature + shape keys merged)
         export_animation_mode='NLA_TRACKS' if clips > 1 else 'ACTIVE_ACTIONS',
         export_nla_strips_merged_animation_name=clip_name,
-        export_vertex_color='ACTIVE' if debug_attributes else 'NONE',
+        export_vertex_color='ACTIVE' if debug_attributes or own_colour else 'NONE',
         export_all_vertex_colors=bool(debug_attributes),
         export_attributes=False,
         export_cameras=False, export_lights=False, export_extras=False,
@@ -193,7 +229,8 @@ def _gltf(path, fmt, clip_name, debug_attributes, step=1, clips=1):
     bpy.ops.export_scene.gltf(**compat.supported_options(bpy.ops.export_scene.gltf, options))
 
 
-def _fbx(path, debug_attributes, step=1, clips=1):
+def _fbx(path, debug_attributes, step=1, clips=1, mesh=None):
+    own_colour = mesh is not None and source_colour(mesh) is not None
     options = dict(
         filepath=path, check_existing=False, use_selection=True,
         object_types={'ARMATURE', 'MESH'},
@@ -206,7 +243,7 @@ def _fbx(path, debug_attributes, step=1, clips=1):
         bake_anim_use_all_actions=False,          # the active actions, one take
         bake_anim_force_startend_keying=True, bake_anim_step=float(step),
         bake_anim_simplify_factor=0.0,            # every frame, no key reduction
-        colors_type='SRGB' if debug_attributes else 'NONE',
+        colors_type='SRGB' if debug_attributes or own_colour else 'NONE',
         use_custom_props=False,
         axis_forward='-Z', axis_up='Y',
     )
@@ -275,12 +312,12 @@ def export_rig(context, obj, path, fmt=None, debug_attributes=False, clip_name=N
                                     track.mute = False
                                     muted.append(track)
                     try:
-                        _fbx(target, debug_attributes, step, clips)
+                        _fbx(target, debug_attributes, step, clips, copy.data)
                     finally:
                         for track in muted:
                             track.mute = True
                 else:
-                    _gltf(target, fmt, clip_name, debug_attributes, step, clips)
+                    _gltf(target, fmt, clip_name, debug_attributes, step, clips, copy.data)
         finally:
             for o in others:
                 data = o.data
