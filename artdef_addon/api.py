@@ -25,6 +25,7 @@ from . import cost as _cost
 from . import linkcount as _linkcount
 from . import pipeline as _pipeline
 from . import procs as _procs
+from . import residuals as _residuals
 from . import seams as _seams
 from . import segmenter as _segmenter
 from .options import FitOptions, OptionsError
@@ -203,7 +204,18 @@ def _fit_pooled(scan, links, o: FitOptions, progress):
         seg_ok = True
     finally:
         _checkin(key, seg, keep=seg_ok)
-    return _seams.expand_result(result, weld, stored)   # on the file's own vertices
+    # on the file's own vertices, the residual shapes of the rig on them
+    return with_residual_shapes(_seams.expand_result(result, weld, stored), stored, o.residuals)
+
+
+def with_residual_shapes(result, scan: Scan, residuals: int | None):
+    """A tracked fit with its rig's residual shapes (:func:`residuals.low_rank_basis`: ``residuals``
+    principal shapes, None: as many as the replay needs) and a note saying how many and the replay
+    error with and without them; a Green's fit as it is (one shape per field, driven by the loads)."""
+    if scan.kind != "greens":
+        result.residual_basis = _residuals.low_rank_basis(result, scan.vertices, scan.fields(), residuals)
+        result.notes.append(result.residual_basis.describe())
+    return result
 
 
 def _search_timings(search: float, fit_timings: dict, after: float) -> dict:

@@ -32,6 +32,10 @@ def _option_arguments(parser) -> None:
         if opt.choices:
             parser.add_argument(flag, choices=opt.values, default=default, help=helptext,
                                 metavar="{" + ",".join(opt.values) + "}")
+        elif opt.auto:      # a count or "auto" (the default: chosen from the data), read in _cmd_fit
+            helptext += " (default: auto)" + (" [tracked scans]" if opt.tracked_only else "")
+            parser.add_argument(flag, default=None, help=helptext,
+                                metavar="{auto,N}")
         else:       # None: not given, the declared default applies (max_links: see _cmd_fit)
             helptext += f" (default: {'off' if default is None else default})"
             parser.add_argument(flag, type=opt.type, default=None, help=helptext)
@@ -364,6 +368,15 @@ def _cmd_fit(a, headless=None, hand_over=None) -> int:
         _check(R["memory_budget"], "--memory-budget", a.memory_budget)
     if a.jobs is not None:
         _check(R["jobs"], "--jobs", a.jobs)
+    for name, (_, opt) in FitOptions.declaration().items():
+        value = getattr(a, name)
+        if opt.auto and value is not None:      # "auto" is the declared default (None)
+            auto_value = str(value).strip().lower() == "auto"
+            flag = "--" + name.replace("_", "-")
+            try:
+                setattr(a, name, None if auto_value else R[name].check(flag, value))
+            except OptionError as exc:
+                raise _BadInput(f"{exc} (or 'auto')") from None
     given = {name: getattr(a, name) for name in FitOptions.declaration() if getattr(a, name) is not None}
     try:
         options = FitOptions(**given)          # the one check of the settings

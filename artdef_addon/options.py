@@ -107,6 +107,16 @@ class FloatRange:
         return v
 
 
+#: the most residual shapes a tracked rig may have (``residuals``): each is a morph target of the
+#: whole mesh in an export, so a rig with more would rival the vertex animation it replaces
+MAX_RESIDUAL_SHAPES = 64
+#: ``residuals="auto"``: the replay error the rank reaches, % of the bounding-box diagonal (the worst
+#: vertex of any frame, and the RMS over vertices and frames), with the fewest shapes
+RESIDUAL_TARGET_MAX = 1.0
+RESIDUAL_TARGET_RMS = 0.2
+#: ``residuals="auto"``: at most this share of the frames (each shape stands for that many frames)
+RESIDUAL_FRAME_SHARE = 0.25
+
 #: the link count's range (not a :class:`FitOptions` field: ``fit``'s own argument); the scan's
 #: usable triangles lower its upper bound (``within``)
 LINKS = IntRange(1)
@@ -134,6 +144,8 @@ class Option:
     max: float | None = None
     why_max: str = ""                # said after the upper bound when it is exceeded
     optional: bool = False           # None allowed ("off")
+    auto: bool = False               # None allowed: "auto", chosen from the data
+    tracked_only: bool = False       # only matters for tracked scans
     greens_only: bool = False        # only matters for Green's-matrix scans
     advanced: bool = False           # for experts and comparisons; the defaults are the product
 
@@ -230,11 +242,19 @@ class FitOptions:
                                               "the capture closely with few bones")),
         advanced=True)
 
+    residuals: int | None = _field(
+        None, label="Residual Shapes", type=int, min=0, max=MAX_RESIDUAL_SHAPES, soft_max=16, auto=True,
+        tracked_only=True,
+        description="Tracked scans: how many principal shapes of what the skin leaves (residual shape "
+                    "keys, one weight per frame). Auto: the fewest whose replay error reaches "
+                    f"max {RESIDUAL_TARGET_MAX:g}%, RMS {RESIDUAL_TARGET_RMS:g}% of the bounding-box "
+                    f"diagonal, at most {RESIDUAL_FRAME_SHARE:.0%} of the frames; 0: skin only, no shape keys")
+
     def __post_init__(self):
         for f in dataclasses.fields(self):
             opt = f.metadata["option"]
             v = getattr(self, f.name)
-            if v is None and opt.optional:
+            if v is None and (opt.optional or opt.auto):
                 continue
             if opt.choices:
                 if not isinstance(v, str) or v not in opt.values:

@@ -59,6 +59,7 @@ class FitResult:
     linear_error_percent: float = float("nan")
     linear_rank: int = 0
     articulated: bool = True
+    residual_basis: object = None    # tracked scans: the rig's residual shapes (residuals.ResidualBasis)
 
     @property
     def n_links(self) -> int:

@@ -30,6 +30,10 @@ def _option_property(default, opt):
         items = tuple((enum_id(c.value), c.label, c.description) for c in opt.choices)
         return EnumProperty(name=opt.label, items=items, default=enum_id(default), description=description)
     bounds = {k: getattr(opt, k) for k in ("soft_min", "soft_max", "max") if getattr(opt, k) is not None}
+    if opt.auto:            # the count when its Auto switch (auto_property) is off
+        return IntProperty(name=opt.label, default=int(opt.min or 0), min=int(opt.min or 0),
+                           description=description + "; used when Auto is off",
+                           **{k: int(v) for k, v in bounds.items()})
     if opt.optional:        # None ("off") is 0 in Blender, the lower bound is checked on use
         description += "; 0 turns it off"
         bounds["min"] = 0.0
@@ -42,6 +46,16 @@ def _option_property(default, opt):
                            **{k: int(v) for k, v in bounds.items()})
     return FloatProperty(name=opt.label, default=0.0 if default is None else float(default),
                          description=description, precision=2, **bounds)
+
+
+def auto_name(name: str) -> str:
+    """The switch property of an option that may be "auto" (``Option.auto``): on, chosen from the data."""
+    return name + "_auto"
+
+
+def _auto_property(opt):
+    return BoolProperty(name=f"Auto {opt.label}", default=True,
+                        description=f"Choose {opt.label} from the data; turn off to set the count yourself")
 
 
 #: Settings of the Blender layer only (how the rig is made from a result, how the count is set)
@@ -62,7 +76,8 @@ _RIG_SETTINGS = {
 }
 
 #: Every fit setting as a property: the rig settings above and one per FitOptions field
-SETTING_NAMES = tuple(_RIG_SETTINGS) + tuple(FitOptions.declaration())
+SETTING_NAMES = tuple(_RIG_SETTINGS) + tuple(FitOptions.declaration()) + tuple(
+    auto_name(name) for name, (_, opt) in FitOptions.declaration().items() if opt.auto)
 
 
 class FitSettings:
@@ -71,7 +86,9 @@ class FitSettings:
     from the core's declaration by :func:`_option_property`."""
     __annotations__ = {**_RIG_SETTINGS,
                        **{name: _option_property(default, opt)
-                          for name, (default, opt) in FitOptions.declaration().items()}}
+                          for name, (default, opt) in FitOptions.declaration().items()},
+                       **{auto_name(name): _auto_property(opt)
+                          for name, (_, opt) in FitOptions.declaration().items() if opt.auto}}
 
 
 def options_from(settings) -> FitOptions:
@@ -82,6 +99,8 @@ def options_from(settings) -> FitOptions:
         v = getattr(settings, name)
         if opt.choices:
             v = v.lower()
+        elif opt.auto and getattr(settings, auto_name(name)):
+            v = None
         elif opt.optional and v == 0:
             v = None
         values[name] = v
@@ -92,6 +111,10 @@ def store_options(settings, options: FitOptions) -> None:
     """Write ``options`` into a :class:`FitSettings` holder (the inverse of :func:`options_from`)."""
     for name, (default, opt) in FitOptions.declaration().items():
         v = getattr(options, name)
+        if opt.auto:
+            setattr(settings, auto_name(name), v is None)
+            if v is None:
+                continue
         if opt.choices:
             v = enum_id(v)
         elif v is None:

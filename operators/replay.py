@@ -44,13 +44,16 @@ def _set_frame_range(st, scene, end):
     st.set_frame_range = True
 
 
-def _build_replay(obj, arm, result, bone_names, key_names, frames_per_field=10):
+def _build_replay(obj, arm, result, bone_names, key_names, frames_per_field=10, key_values=None):
     """Actions replaying the fields: rest at frame 0, field p at (p+1)·frames_per_field,
     or, for a scan sampled from an animation or a sequence, every field at its
     source frame (:func:`.timing.clip_timings`).  A scan of several clips gets
     one armature action and one shape-key action per clip, each also in a
     muted NLA track named after the clip (the glTF exporter's NLA Tracks mode
     writes one animation per track name); the first clip is the active one.
+
+    ``key_values (P, C)``: shape key c's value at field p (a tracked fit's principal residual
+    shapes); None: field p sets key p to 1, the others 0.
 
     Returns the last frame of the replay, or None when the replay keeps the
     source's timing (the scene's frame range is then left alone).
@@ -87,7 +90,7 @@ def _build_replay(obj, arm, result, bone_names, key_names, frames_per_field=10):
         kaction.use_frame_range = True
         kaction.frame_start, kaction.frame_end = first, max(end, first + 1)
         for c, kname in enumerate(key_names):
-            values = (field == c).astype(np.float64)
+            values = (field == c).astype(np.float64) if key_values is None else np.r_[0.0, key_values[:, c]][pick]
             _key_curve(new_kcurve(f'key_blocks["{kname}"].value', 0, "ArtDef"), frames, values)
         made.append((clip, action, kaction, first))
     if len(made) > 1:

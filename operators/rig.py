@@ -12,7 +12,8 @@ re-fit remove exactly this:
   (same names as the groups), the mesh parented to it and an Armature
   modifier ``ArtDef Armature`` at the top of the stack;
 * shape keys ``artdef_field_XXX`` holding the residual (and ``Basis`` if the
-  mesh had none);
+  mesh had none): one per field, or a tracked fit's principal residual shapes
+  (``artdef_addon.residuals``) keyed at their weight per field;
 * Green's scans: load empties ``artdef_load_K`` (children of the armature)
   whose ``location`` is the load vector, and a load-sweep action per empty:
   load k along axis d (field c = 3k+d) rises from 0 to the probe load p̂ and
@@ -54,6 +55,7 @@ from .loads import (_add_load_constraint, _add_load_vars, _build_load_controls, 
 from .names import (COLOR_ATTR, GROUP_FMT, HELPER_COLLECTION, HELPER_FMT, KEY_PREFIX, LOAD_CONSTRAINT,  # noqa: F401
                     LOAD_FMT, MODIFIER_NAME, RESIDUAL_ATTR, RESIDUAL_COLOR_ATTR, RIG_VERSION, RIG_VERSION_PROP,
                     STASH_PREFIX)
+from ..artdef_addon.residuals import rig_shapes
 from .replay import _build_replay, _key_curve, _new_action, _set_frame_range  # noqa: F401
 
 SLIDER_RANGE = 10.0          # Blender's hard limit for shape key sliders
@@ -361,7 +363,8 @@ class RigBuild:
         self.load_names, self.frames_per_field = load_names, frames_per_field
         self.n_links = int(result.n_links)
         self.weights = np.asarray(result.weights, dtype=np.float64)
-        self.residual = np.asarray(result.residual, dtype=np.float64)
+        # a tracked fit's principal residual shapes and their weight per field, else one per field
+        self.residual, self.key_values = rig_shapes(result)
         self.n_keys = 0              # residual shape keys (a Green's rig: two per field)
         self.greens = kind == "greens" and result.kappa is not None
         self.arm = None              # armature
@@ -443,7 +446,8 @@ def _stage_animation(b):
         empties = loads._build_load_controls(obj, arm, b.result, b.bone_names, b.key_names, b.load_names)
         end = loads._build_load_sweep(empties, float(b.result.probe_load), b.frames_per_field)
     else:
-        end = replay._build_replay(obj, arm, b.result, b.bone_names, b.key_names, b.frames_per_field)
+        end = replay._build_replay(obj, arm, b.result, b.bone_names, b.key_names, b.frames_per_field,
+                                   b.key_values)
     if end is not None:  # None: the replay keeps the source's frames, the scene's range stays
         replay._set_frame_range(obj.artdef, b.context.scene, end)
 

@@ -9,7 +9,7 @@ from ..artdef_addon import wording
 from ..artdef_addon.cost import format_seconds
 from ..artdef_addon.options import GB, FitOptions
 from ..operators import io, ops, rig
-from ..operators.props import SETTING_NAMES
+from ..operators.props import SETTING_NAMES, auto_name
 
 
 def _subpanel(layout, idname, title):
@@ -80,6 +80,12 @@ class ARTDEF_PT_main(bpy.types.Panel):
                 continue
             if opt.greens_only and not greens and not (name == "mode" and st.mode == 'PSEUDO'):
                 continue
+            if opt.tracked_only and greens:
+                continue
+            if opt.auto:        # its Auto switch, and the count when that is off
+                col.prop(st, auto_name(name))
+                if getattr(st, auto_name(name)):
+                    continue
             col.prop(st, name)
             if name == "mode" and st.mode == 'PSEUDO':
                 col.prop(st, "load_index")
