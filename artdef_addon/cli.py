@@ -506,10 +506,17 @@ def _cmd_fit(a, headless=None, hand_over=None) -> int:
         if rot_err is not None:
             print(f"rotation-only joints: added error max {rot_err[0]:.3f}%, "
                   f"rms {rot_err[1]:.3f}% of the diagonal")
+        sources = read if kind != "npz" else []       # the vertex animation a rig replaces
         for path in (a.output, a.blend, a.glb, a.fbx, a.png):
             if path:
-                print(f"wrote {path}")
+                print(f"wrote {path}" + _rig_report(path, sources if path in (a.glb, a.fbx) else None))
     return 0
+
+
+def _rig_report(path: str, sources) -> str:
+    """": what the exported rig holds and its size beside its source's" (``sources`` None: not a rig)."""
+    from . import gltfinfo
+    return "" if sources is None else ": " + gltfinfo.report(path, sources)
 
 
 class _Terminated(KeyboardInterrupt):

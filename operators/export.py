@@ -34,6 +34,7 @@ from bpy_extras.io_utils import ExportHelper
 
 from . import compat, menus, parts, rig
 from .ops import in_object_mode
+from ..artdef_addon import gltfinfo
 from ..artdef_addon.files import Outputs, same_file
 
 FORMATS = (('GLB', "glTF Binary (.glb)", "One .glb file"),
@@ -403,6 +404,7 @@ class ARTDEF_OT_export_rig(bpy.types.Operator, ExportHelper):
             self.report({'ERROR'}, f"Export failed: {err}")
             return {'CANCELLED'}
         msg = f"Exported the rig to {written}"
+        msg += ": " + gltfinfo.report(written, source)
         if left_out:
             msg += f"; left out {', '.join(left_out[:4])}{', ...' if len(left_out) > 4 else ''}"
         self.report({'INFO'}, msg)
