@@ -47,7 +47,9 @@ def test_replay_keeps_the_source_frames(fitted_character, installed_addon):
     rig_action = scan_obj.artdef.rig.animation_data.action
     assert compat.keyed_frames(rig_action) == [1.0, 6.0, 11.0, 16.0, 21.0]
     key_action = scan_obj.data.shape_keys.animation_data.action
-    assert compat.keyed_frames(key_action) == [1.0, 6.0, 11.0, 16.0, 21.0]
+    # residual shapes (if the skin leaves any to correct) are keyed at the same frames
+    shapes = len(scan_obj.artdef.shape_keys)
+    assert compat.keyed_frames(key_action) == ([1.0, 6.0, 11.0, 16.0, 21.0] if shapes else [])
     scene = bpy.context.scene
     assert (scene.frame_start, scene.frame_end) == (1, 100)
     # the replay matches the source at its keys

@@ -111,7 +111,9 @@ def test_several_clips_fit_one_rig_with_one_action_each(clean_scene, tmp_path):
         assert min(times) == pytest.approx(1 / 24, abs=1e-4)
         assert max(times) == pytest.approx(last / 24, abs=1e-4)
         paths = {c["target"]["path"] for c in anims[name]["channels"]}
-        assert {"rotation", "weights"} <= paths
+        # the residual shapes' weights (where the skin leaves anything to correct) in the same clip
+        shapes = bool(gltf["meshes"][0]["primitives"][0].get("targets"))
+        assert {"rotation"} | ({"weights"} if shapes else set()) <= paths
     refs = {}
     for name, frames in (("Walk", [1, 6, 11, 16, 21]), ("Wave", [1, 6, 11])):
         source = _skinned(_import(src))
