@@ -15,7 +15,8 @@ as a P × 3N matrix). K is asked for, or chosen as the fewest shapes whose repla
 :data:`options.RESIDUAL_FRAME_SHARE` of the frames. The choice reads the rest-space error of the
 truncation, an upper bound of the replay's: the blended transform Σ_l w_l R_l of convex weights
 has norm ≤ 1. The errors reported are the replay's own (the rig's bone motions and the skin), with
-the shapes and without them.
+the shapes and without them. The rig's keys hold the shapes with weights in [0, 1] (a constant
+offset key takes what keeping them non-negative shifts, :func:`_keys`).
 """
 from __future__ import annotations
 
@@ -31,15 +32,17 @@ from .options import (MAX_RESIDUAL_SHAPES, RESIDUAL_FRAME_SHARE, RESIDUAL_TARGET
 #: entries of the work block (fields × vertex coordinates) the error sweeps take at once: about 32 MB
 BLOCK = 4_000_000
 
-#: singular values below this share of the largest are numerical zeros (no shape is made of them)
-RANK_TOL = 1e-9
+#: singular values below this share of the largest are numerical zeros (no shape is made of them):
+#: through the Gram matrix a singular value is known to about √ε ≈ 1.5e-8 of the largest
+RANK_TOL = 1e-6
 
 
 @dataclasses.dataclass
 class ResidualBasis:
     """The rig's residual shapes of a tracked scan (see the module's docstring)."""
-    shapes: np.ndarray          # (K, N, 3) rest-space shapes, each scaled so that its weights reach ±1
-    values: np.ndarray          # (P, K) each shape's weight per field, in [-1, 1]
+    shapes: np.ndarray          # (K, N, 3) rest-space shapes, scaled so that their weights span [0, 1]
+    values: np.ndarray          # (P, K) each shape's weight per field, in [0, 1]
+    rank: int                   # principal shapes (K: these, and one constant offset key if any)
     asked: int | None           # the shapes asked for; None: chosen from the data ("auto")
     cap: int                    # the most "auto" could choose
     skin_error: tuple           # (max, rms) replay error with no shape, % of the diagonal
@@ -47,7 +50,9 @@ class ResidualBasis:
     reached: bool               # the replay error reaches the targets
 
     @property
-    def rank(self) -> int:
+    def keys(self) -> int:
+        """Shape keys: the ``rank`` principal shapes, and one constant offset when a weight had to be
+        shifted to stay ≥ 0 (:func:`_keys`)."""
         return int(self.shapes.shape[0])
 
     def describe(self) -> str:
@@ -56,7 +61,8 @@ class ResidualBasis:
                f"diagonal, at most {self.cap}" if self.asked is None else "as asked")
         if self.asked is None and not self.reached:
             how += ": the target is not reached"
-        return (f"residual shapes: {self.rank} of {self.values.shape[0]} frames ({how}); replay error "
+        extra = " and a constant offset key" if self.keys > self.rank else ""
+        return (f"residual shapes: {self.rank} of {self.values.shape[0]} frames{extra} ({how}); replay error "
                 f"skin alone max {self.skin_error[0]:.3g}% RMS {self.skin_error[1]:.3g}%, with the shapes "
                 f"max {self.replay_error[0]:.3g}% RMS {self.replay_error[1]:.3g}% of the bounding-box diagonal")
 
@@ -166,18 +172,36 @@ def low_rank_basis(result, x0: np.ndarray, fields: np.ndarray, asked: int | None
         k, reached = choose_rank(truncation_errors(residual, U, diag), min(cap, U.shape[1]))
     else:
         k = U.shape[1]
-    U, s = U[:, :k], s[:k]
-    # each shape scaled so that its weights reach ±1 (a slider's natural range), the peak positive
-    peak = U[np.argmax(np.abs(U), axis=0), np.arange(k)] if k else np.zeros(0)
-    values = U / np.where(peak == 0, 1.0, peak)[None, :]
-    shapes = ((s * peak)[:, None] * V[:k]).reshape(k, N, 3) if k else np.zeros((0, N, 3))
+    shapes, values = _keys(U[:, :k], s[:k], V[:k] if k else None, N)
     empty = (np.zeros((0, N, 3)), np.zeros((P, 0)))
     skin = replay_error(result, x0, fields, *empty, diag)
     replay = replay_error(result, x0, fields, shapes, values, diag) if k else skin
     if asked is None:
         reached = replay[0] <= RESIDUAL_TARGET_MAX and replay[1] <= RESIDUAL_TARGET_RMS
-    return ResidualBasis(shapes=shapes, values=values, asked=asked, cap=cap, skin_error=skin,
+    return ResidualBasis(shapes=shapes, values=values, rank=k, asked=asked, cap=cap, skin_error=skin,
                          replay_error=replay, reached=reached)
+
+
+def _keys(U, s, V, N):
+    """Shape keys of the truncation ``U (P, k)``, ``s (k,)``, ``V (k, 3N)``: ``(shapes (C, N, 3),
+    values (P, C))`` with Σ_c values[p, c] shapes[c] = (U s V)_p and every value in [0, 1]. Blender's
+    glTF importer clamps a negative morph weight to 0 where it leaves the key's slider at 0, and
+    engines' weight sliders start at 0: each shape's weights are shifted and scaled into [0, 1]
+    (c = lo + (hi − lo) c', lo = min(0, min_p c)), and what the shift moves, Σ_k lo_k s_k v_k, is one
+    more key at value 1 in every field (C = k + 1; none when no weight is negative)."""
+    P, k = U.shape
+    if k == 0:
+        return np.zeros((0, N, 3)), np.zeros((P, 0))
+    lo = np.minimum(U.min(axis=0), 0.0)
+    span = U.max(axis=0) - lo
+    span = np.where(span > 0, span, 1.0)
+    values = (U - lo) / span
+    shapes = ((s * span)[:, None] * V).reshape(k, N, 3)
+    if np.any(lo < 0):
+        offset = ((s * lo) @ V).reshape(1, N, 3)
+        shapes = np.concatenate([shapes, offset])
+        values = np.column_stack([values, np.ones(P)])
+    return shapes, values
 
 
 def rig_shapes(result):

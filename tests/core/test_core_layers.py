@@ -164,7 +164,7 @@ def test_cli_checks_and_fitoptions_share_the_declared_bounds():
     """Each numeric setting's bounds are declared once: the command line's check
     (``Option.range``) and FitOptions accept and refuse the same values at and around them."""
     numeric = {n: o for n, (_, o) in FitOptions.declaration().items() if not o.choices}
-    assert set(numeric) == {"p_max", "max_links", "memory_budget", "jobs"}
+    assert set(numeric) == {"p_max", "max_links", "memory_budget", "jobs", "residuals"}
     for name, opt in numeric.items():
         step = 1 if opt.type is int else 1e-9
         probes = [b + d for b in (opt.min, opt.max) if b is not None for d in (-step, 0, step)]
@@ -181,6 +181,7 @@ def test_cli_checks_and_fitoptions_share_the_declared_bounds():
                 core_ok = False
             assert cli_ok == core_ok, (name, v, cli_ok, core_ok)
     assert numeric["max_links"].range.hi == options.MAX_AUTO_LINKS
+    assert numeric["residuals"].range.hi == options.MAX_RESIDUAL_SHAPES and numeric["residuals"].auto
     # a refused bound: the flag's message (command line) and the setting's (FitOptions)
     with pytest.raises(options.OptionError, match="--memory-budget must be above 0"):
         numeric["memory_budget"].range.check("--memory-budget", 0)
@@ -192,7 +193,7 @@ def test_options_are_frozen_and_declare_everything():
         o.mode = "pseudo"
     decl = FitOptions.declaration()
     assert list(decl) == ["mode", "motion", "p_max", "max_links", "memory_budget", "jobs", "reduce", "strategy",
-                          "skin"]
+                          "skin", "residuals"]
     for name, (default, opt) in decl.items():
         assert opt.label and opt.description and getattr(o, name) == default
         assert not opt.choices or default in opt.values
@@ -207,7 +208,8 @@ def test_cli_arguments_come_from_the_declaration(capsys):
         action = by_dest[name]
         # choices default to the declared value; numbers to None (not given: the declared default)
         assert action.default == (default if opt.choices else None)
-        assert opt.choices or f"(default: {'off' if default is None else default})" in action.help
+        shown = "auto" if opt.auto else "off" if default is None else default
+        assert opt.choices or f"(default: {shown})" in action.help
         assert tuple(action.choices or ()) == opt.values
         assert opt.description.split(",")[0].replace("%", "%%") in action.help
 
