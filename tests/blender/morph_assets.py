@@ -177,6 +177,52 @@ def write_morph_glb(path, vertices, faces, displacements, name="Creature", key_s
     return n, frames
 
 
+def read_back(path):
+    """The one mesh of glTF file ``path`` imported by Blender's importer into an empty scene (the
+    importer's bone display shape aside)."""
+    import bpy
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    assert bpy.ops.import_scene.gltf(filepath=str(path)) == {'FINISHED'}
+    shapes = {pb.custom_shape for o in bpy.data.objects if o.type == 'ARMATURE' for pb in o.pose.bones}
+    meshes = [o for o in bpy.data.objects if o.type == 'MESH' and o not in shapes]   # not a bone's look
+    assert len(meshes) == 1, [o.name for o in bpy.data.objects]
+    return meshes[0]
+
+
+def world_positions(obj, frames):
+    """(F, N, 3) evaluated world positions of ``obj`` at ``frames`` and (N, 3) at rest."""
+    import bpy
+    scene = bpy.context.scene
+    out = []
+    for f in frames:
+        scene.frame_set(f)
+        ev = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+        me = ev.to_mesh()
+        co = np.empty(3 * len(me.vertices), dtype=np.float32)
+        me.vertices.foreach_get("co", co)
+        mw = np.array(ev.matrix_world)
+        ev.to_mesh_clear()
+        out.append(co.reshape(-1, 3).astype(np.float64) @ mw[:3, :3].T + mw[:3, 3])
+    rest = np.empty(3 * len(obj.data.vertices), dtype=np.float32)
+    obj.data.vertices.foreach_get("co", rest)
+    mw = np.array(obj.matrix_world)
+    return np.array(out), rest.reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3]
+
+
+def replay_error(source, out, frames):
+    """(max, RMS) distance, as fractions of the bounding-box diagonal, between the rig ``out`` and
+    the morph animation ``source``, both read back by Blender's glTF importer, at ``frames``;
+    vertices matched by rest position (a seam's copies move together)."""
+    from scipy.spatial import cKDTree
+    ref, ref_rest = world_positions(read_back(source), frames)
+    moved, rest = world_positions(read_back(out), frames)
+    dist, index = cKDTree(ref_rest).query(rest)
+    diag = float(np.linalg.norm(np.ptp(ref_rest, axis=0)))
+    assert dist.max() < 1e-4 * diag, "the rig's rest mesh is not the source's"
+    err = np.linalg.norm(moved - ref[:, index], axis=-1)
+    return float(err.max()) / diag, math.sqrt(float(np.mean(err ** 2))) / diag
+
+
 def glb_mesh_counts(path):
     """``(meshes, skins, vertices of the first mesh's primitives, morph targets)`` of a .glb,
     read from its JSON chunk."""
