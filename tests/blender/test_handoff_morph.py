@@ -23,7 +23,7 @@ bpy = pytest.importorskip("bpy")
 
 import morph_assets  # noqa: E402
 from morph_assets import replay_error  # noqa: E402
-from test_handoff import _ok, _run  # noqa: E402
+from handoffhelpers import _ok, _run  # noqa: E402
 from test_headless_gltf import _validate, read_glb  # noqa: E402
 
 MAX_BAR = 0.015                 # of the bounding-box diagonal, the worst vertex of any keyed frame
