@@ -12,6 +12,7 @@ from conftest import ADDON_MODULE, REPO_ROOT
 
 bpy = pytest.importorskip("bpy")
 
+from morph_assets import world_positions  # noqa: E402,F401  (evaluated world positions)
 from test_headless_gltf import _validate, accessor, read_glb  # noqa: E402  (GLB reader, validator)
 
 
@@ -114,27 +115,6 @@ def _skinned(objects):
     meshes = [o for o in objects if o.type == 'MESH' and o.find_armature() is not None]
     assert len(meshes) == 1, [(o.name, o.type) for o in objects]
     return meshes[0]
-
-
-def world_positions(obj, frames):
-    """(F, N, 3) evaluated world positions of ``obj`` at ``frames`` and (N, 3) at rest."""
-    scene = bpy.context.scene
-    out = []
-    for f in frames:
-        scene.frame_set(f)
-        dg = bpy.context.evaluated_depsgraph_get()
-        ev = obj.evaluated_get(dg)
-        me = ev.to_mesh()
-        co = np.empty(3 * len(me.vertices), dtype=np.float32)
-        me.vertices.foreach_get("co", co)
-        mw = np.array(ev.matrix_world)
-        ev.to_mesh_clear()
-        co = co.reshape(-1, 3).astype(np.float64)
-        out.append(co @ mw[:3, :3].T + mw[:3, 3])
-    rest = np.empty(3 * len(obj.data.vertices), dtype=np.float32)
-    obj.data.vertices.foreach_get("co", rest)
-    mw = np.array(obj.matrix_world)
-    return np.array(out), rest.reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3]
 
 
 def compare(reference, ref_rest, moved, rest):
