@@ -210,11 +210,10 @@ def _fit_pooled(scan, links, o: FitOptions, progress):
 
 def with_residual_shapes(result, scan: Scan, residuals: int | None):
     """A tracked fit with its rig's residual shapes (:func:`residuals.low_rank_basis`: ``residuals``
-    principal shapes, None: as many as the replay needs) and a note saying how many and the replay
-    error with and without them; a Green's fit as it is (one shape per field, driven by the loads)."""
+    principal shapes, None: as many as the replay needs; its summary says how many and the replay
+    error with and without them); a Green's fit as it is (one shape per field, driven by the loads)."""
     if scan.kind != "greens":
         result.residual_basis = _residuals.low_rank_basis(result, scan.vertices, scan.fields(), residuals)
-        result.notes.append(result.residual_basis.describe())
     return result
 
 

@@ -104,6 +104,8 @@ class FitResult:
             lines.append(f"reference models (Karni–Gotsman): one rigid motion per frame {self.rigid_error_percent:.3g}%, "
                          f"rank-{self.linear_rank} linear model {self.linear_error_percent:.3g}%"
                          + ("" if self.articulated else "; the data do not look articulated (see note)"))
+        if self.residual_basis is not None:       # tracked: the rig's residual shapes and its replay error
+            lines.append(self.residual_basis.describe())
         lines.append("time: " + ", ".join(f"{k} {v:.2f}s" for k, v in self.timings.items()))
         lines.extend(f"note: {n}" for n in self.notes)
         return "\n".join(lines)

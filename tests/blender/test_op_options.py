@@ -50,8 +50,9 @@ def test_fit_properties_are_the_cores_declaration(pkg):
     # a value the declaration refuses is reported with the setting's label, nothing is made
     assert pkg.ops.options_from(type("S", (), dict(
         mode='GLOBAL', motion='LSQ', p_max=0.0, max_links=4, memory_budget=1.0, jobs=1, reduce='ON',
-        strategy='PAPER', skin='SEAM'))()) == options.FitOptions(
-        motion="lsq", max_links=4, memory_budget=1.0, jobs=1, reduce="on", strategy="paper", skin="seam")
+        strategy='PAPER', skin='SEAM', residuals=2, residuals_auto=False))()) == options.FitOptions(
+        motion="lsq", max_links=4, memory_budget=1.0, jobs=1, reduce="on", strategy="paper", skin="seam",
+        residuals=2)
 
 
 def test_fit_skin_option(clean_scene, pkg, sample_files):
