@@ -204,6 +204,34 @@ def _keys(U, s, V, N):
     return shapes, values
 
 
+#: the result file's keys of a :class:`ResidualBasis` (docs/formats.md)
+BASIS_KEYS = ("residual_shapes", "residual_values", "residual_basis_numbers")
+
+
+def basis_arrays(b: ResidualBasis | None) -> dict:
+    """The result file's arrays of ``b`` (none when there is no basis): the shapes, their values
+    and ``(rank, asked or -1, cap, skin max, skin RMS, replay max, replay RMS, reached)``."""
+    if b is None:
+        return {}
+    numbers = [b.rank, -1 if b.asked is None else b.asked, b.cap, *b.skin_error, *b.replay_error, float(b.reached)]
+    return {"residual_shapes": b.shapes, "residual_values": b.values,
+            "residual_basis_numbers": np.asarray(numbers, dtype=np.float64)}
+
+
+def basis_from_arrays(d: dict) -> ResidualBasis | None:
+    """The :class:`ResidualBasis` of a result file's arrays (None when it has none, or older files);
+    ValueError when the arrays do not fit together."""
+    if "residual_shapes" not in d:
+        return None
+    shapes, values = np.asarray(d["residual_shapes"], dtype=np.float64), np.asarray(d["residual_values"], dtype=np.float64)
+    n = np.asarray(d["residual_basis_numbers"], dtype=np.float64).reshape(-1)
+    if shapes.ndim != 3 or shapes.shape[2] != 3 or values.ndim != 2 or values.shape[1] != shapes.shape[0] or n.size != 8:
+        raise ValueError("the residual shapes, their values and numbers do not fit together")
+    return ResidualBasis(shapes=shapes, values=values, rank=int(n[0]), asked=None if n[1] < 0 else int(n[1]),
+                         cap=int(n[2]), skin_error=(float(n[3]), float(n[4])), replay_error=(float(n[5]), float(n[6])),
+                         reached=bool(n[7]))
+
+
 def rig_shapes(result):
     """What a rig of ``result`` keys: ``(shapes (C, N, 3), values (P, C) or None)``. A tracked fit
     with a :class:`ResidualBasis` gives its shapes and their weights per field; otherwise the

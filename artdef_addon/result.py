@@ -10,6 +10,8 @@ import os
 
 import numpy as np
 
+from . import residuals as _residuals
+
 
 class FitCancelled(Exception):
     """The progress callback asked to stop; nothing was produced."""
@@ -144,7 +146,7 @@ def result_arrays(result: FitResult) -> dict:
                linear_rank=np.int64(result.linear_rank), articulated=np.bool_(result.articulated),
                timing_names=np.array(list(result.timings.keys()), dtype=str),
                timing_seconds=np.array(list(result.timings.values()), dtype=np.float64),
-               link_reason=np.array(result.link_reason))
+               link_reason=np.array(result.link_reason), **_residuals.basis_arrays(result.residual_basis))
     if result.kappa is not None:
         out["kappa"] = result.kappa
         out["load_vertices"] = result.load_vertices
@@ -198,6 +200,7 @@ def result_from_arrays(d: dict) -> FitResult:
     res = build()
     res.timings = dict(zip(d["timing_names"].tolist(), d["timing_seconds"].tolist()))
     res.link_reason = str(d["link_reason"]) if "link_reason" in d else ""
+    res.residual_basis = _residuals.basis_from_arrays(d)
     if "pseudo_face_labels" in d:
         res.pseudo = []
         k = 0

@@ -96,3 +96,15 @@ def test_residuals_setting_is_checked_once():
     for bad in (-1, 65, 2.5, "three"):
         with pytest.raises(OptionsError):
             FitOptions(residuals=bad)
+
+
+def test_the_basis_survives_the_result_file(one_bone_short, tmp_path):
+    """The result file (and the worker's hand-over, the same arrays) keeps the rig's residual shapes."""
+    sc, res = one_bone_short
+    res.residual_basis = residuals.low_rank_basis(res, sc.vertices, sc.fields(), None)
+    res.save(tmp_path / "r.npz")
+    back = artdef_addon.FitResult.load(tmp_path / "r.npz").residual_basis
+    b = res.residual_basis
+    assert back.rank == b.rank and back.asked is None and back.cap == b.cap and back.reached == b.reached
+    assert np.array_equal(back.shapes, b.shapes) and np.array_equal(back.values, b.values)
+    assert back.replay_error == b.replay_error and back.describe() == b.describe()
