@@ -46,7 +46,7 @@ from artdef_addon import gltfinfo  # noqa: E402
 import morph_assets  # noqa: E402
 
 #: shared rigs whose true skeleton is posed into a cycle (smallest first)
-RIGS = ("gltf_RiggedFigure", "gltf_Fox", "cragl_cylinder", "threejs_RobotExpressive", "gltf_CesiumMan")
+RIGS = ("gltf_RiggedFigure", "gltf_Fox", "threejs_RobotExpressive", "gltf_CesiumMan")
 FRAMES = 30
 DEMBONES_ITERS = 30
 
