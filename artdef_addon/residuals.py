@@ -1,4 +1,4 @@
-"""Residual shapes of a tracked rig as a low-rank basis (paper §7's residual, METHOD §9–§10).
+"""Residual shapes of a tracked rig as a low-rank basis (paper §7's residual, docs/method_notes_model.md §8).
 
 The fit's residual ``δ (P, N, 3)`` is, per field, the rest-space offset that makes the skin
 reproduce that field exactly (shape keys act before skinning: ``x = Σ_l w_l G_l (x0 + δ)``).
