@@ -160,6 +160,7 @@ def pkg(installed_addon):
         files = importlib.import_module(installed_addon + ".artdef_addon.files")
         samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
         model = importlib.import_module(installed_addon + ".artdef_addon.model")
+        residuals = importlib.import_module(installed_addon + ".artdef_addon.residuals")
         ops = importlib.import_module(installed_addon + ".operators.ops")
         api = importlib.import_module(installed_addon + ".artdef_addon.api")
         cost = importlib.import_module(installed_addon + ".artdef_addon.cost")

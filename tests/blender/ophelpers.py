@@ -1,5 +1,7 @@
 """Helpers of the operator tests (tests/blender/test_op_*.py): scene reading, reference rigs, geometry."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -69,6 +71,16 @@ def scene_snapshot():
                 "has_fit": o.artdef.has_fit,
             }
     return snap
+
+
+def field_model(pkg, result, rest, p):
+    """The core's model of tracked field ``p``: the pose ``result.params[p]`` with the residual
+    shapes the rig keys (``residuals.rig_shapes``: the principal shapes and their weights in
+    field p, or field p's own residual) at their values in that field."""
+    shapes, values = pkg.residuals.rig_shapes(result)
+    w = np.eye(shapes.shape[0])[p] if values is None else values[p]
+    keyed = dataclasses.replace(result, residual=shapes)
+    return pkg.model.deform(keyed, rest, result.params[p], w)
 
 
 def check_rig(pkg, obj, links, n_fields):
