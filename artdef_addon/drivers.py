@@ -93,3 +93,22 @@ def bump_value_expression(k, d, probe_load):
     power = _model.BUMP_POWER
     return (f"{v}*{v}*{i2}*" + "*".join([f"{n2}*{i2}"] * ((power - 2) // 2))
             + f"*exp({number(power)}-{number(power / probe_load)}*sqrt({n2}))")
+
+
+#: variable names of a load's turn in :func:`felt_expression`
+TURN_VARS = ("wx", "wy", "wz")
+
+
+def felt_expression(k, d) -> str:
+    """Simple expression of component d of load k as its link feels it (:func:`artdef_addon.model.dead_loads`):
+    the load (x<k>, y<k>, z<k>) turned back by the link's turn w (wx, wy, wz), Rodrigues' formula
+    cos θ f − sin θ/θ w × f + (1 − cos θ)/θ² w (w·f), θ = |w| (:func:`artdef_addon.model.rotate_vectors`
+    of −w)."""
+    f = [f"{a}{k}" for a in AXES]
+    w = TURN_VARS
+    t = "sqrt(wx*wx+wy*wy+wz*wz)"
+    i, j = (d + 1) % 3, (d + 2) % 3
+    cross = f"({w[i]}*{f[j]}-{w[j]}*{f[i]})"
+    dot = f"({w[0]}*{f[0]}+{w[1]}*{f[1]}+{w[2]}*{f[2]})"
+    return (f"cos({t})*{f[d]}-sin({t})/max({t},1e-30)*{cross}"
+            f"+(1-cos({t}))/max(wx*wx+wy*wy+wz*wz,1e-60)*{w[d]}*{dot}")

@@ -239,9 +239,12 @@ def greens_keys(result, rest) -> np.ndarray:
     first-order key is measured against the articulation's linearised motion
     (:func:`linear_displacement`): Δ_c = p̂ Ξ e_c − J κ_c p̂, which, with the hardening's slope σ
     at zero (:func:`hardening_slope`) dividing its value, gives the rig G as its derivative at
-    zero load; the bump key η_c = δ_c − Δ_c/σ, on with a weight that is 1 at the probe load and
-    vanishes to sixth order at zero and fast beyond a few probe loads (:func:`greens_key_values`),
-    keeps the probe fields exact. ``rest`` (N, 3): the rest positions."""
+    zero load. The bump keys η, on with a weight that is 1 at the probe load and vanishes to sixth
+    order at zero and fast beyond a few probe loads (:func:`greens_key_values`), keep the probe
+    fields exact: the rig poses the loads its links feel (:func:`dead_loads`), g_c at probe load c,
+    so η solves Σ_c' b_c'(g_c) η_c' = δ'_c − Σ_c' a_c'(g_c) Δ_c', δ'_c the rest-space residual that
+    makes field c exact at pose κ g_c and a, b the first-order and bump key values (without the
+    dead-load turn, g_c = p̂ e_c and η_c = δ_c − Δ_c/σ). ``rest`` (N, 3): the rest positions."""
     ph = float(result.probe_load)
     params = np.transpose(np.asarray(result.kappa, dtype=np.float64), (2, 0, 1)) * ph    # (P, L, 6)
     R, t = forward_kinematics(result.parents, result.heads, result.frames, params)
@@ -250,7 +253,19 @@ def greens_keys(result, rest) -> np.ndarray:
     delta = np.asarray(result.residual, dtype=np.float64)
     field = art + np.einsum("pnij,pnj->pni", B, delta) - rest
     first = field - linear_displacement(result.parents, result.heads, result.frames, result.weights, params, rest)
-    return np.concatenate([first, delta - first / hardening_slope(result.p_max)])
+    # the rig poses the loads its links feel (dead_loads): at probe load c the residual that makes
+    # field c exact is taken against that pose, and the bump keys solve for it with the key values there
+    P = field.shape[0]
+    felt = np.stack([dead_loads(result, ph * np.eye(P)[c]) for c in range(P)])       # (P, M, 3)
+    fparams = np.stack([pose_params_for_loads(result, g) for g in felt])
+    R, t = forward_kinematics(result.parents, result.heads, result.frames, fparams)
+    B = blended_linear(result.weights, R)
+    wt = np.matmul(result.weights, t)
+    exact = blended_residual(B, rest + field - wt) - rest                               # (P, N, 3)
+    values = np.stack([greens_key_values(result, g) for g in felt])                     # (P, 2P)
+    rhs = exact - np.einsum("pc,cnd->pnd", values[:, :P], first)
+    bump = np.linalg.solve(values[:, P:], rhs.reshape(P, -1)).reshape(rhs.shape)
+    return np.concatenate([first, bump])
 
 
 def greens_key_values(result, loads) -> np.ndarray:
@@ -264,6 +279,51 @@ def greens_key_values(result, loads) -> np.ndarray:
     q = loads / result.probe_load
     bump = q * q * (s ** (BUMP_POWER - 2) * np.exp(BUMP_POWER * (1.0 - s)))[:, None]
     return np.concatenate([first, bump.reshape(-1)])
+
+
+#: averaged fixed-point steps of :func:`dead_loads`, the drivers' as well (benchmarks/results/greens_posing.md:
+#: three were closer to the truth on the solids than the converged turn)
+DEAD_LOAD_STEPS = 3
+
+
+def load_turn_maps(result) -> np.ndarray:
+    """(M, 3, 3M): row block k maps the flat loads to the linearised world rotation vector of the
+    link that carries load vertex k (its largest skin weight): the sum along the tree of B_j ω_j,
+    ω_j the rotation rows of κ (:func:`linear_displacement`'s A_l, as a vector)."""
+    kappa = np.asarray(result.kappa, dtype=np.float64)                    # (L, 6, 3M)
+    lv = np.asarray(result.load_vertices)
+    carrier = np.argmax(np.asarray(result.weights)[lv], axis=1)
+    own = np.einsum("lij,ljc->lic", result.frames, kappa[:, :3])          # (L, 3, 3M) world vectors
+    world = np.empty_like(own)
+    for l in topological_order(result.parents):
+        p = result.parents[l]
+        world[l] = own[l] + (world[p] if p >= 0 else 0.0)
+    return world[carrier]
+
+
+def rotate_vectors(w, v) -> np.ndarray:
+    """Rodrigues: v (..., 3) turned by the rotation vectors w (..., 3), written as the drivers write it
+    (cos θ v + sin θ/θ w × v + (1 − cos θ)/θ² w (w·v), θ = |w|)."""
+    th = np.linalg.norm(w, axis=-1, keepdims=True)
+    c = np.cos(th)
+    sinc = np.sin(th) / np.maximum(th, 1e-30)
+    vers = (1.0 - c) / np.maximum(th * th, 1e-60)
+    return c * v + sinc * np.cross(w, v) + vers * w * np.sum(w * v, axis=-1, keepdims=True)
+
+
+def dead_loads(result, loads, steps: int | None = None) -> np.ndarray:
+    """The loads (M, 3) as the loaded links feel them. A dead load keeps its world direction while
+    its link turns, so in the link's frame it is f_k turned back by the link's turn w_k: the turn
+    solves w = W g(w), g_k(w) = R(−w_k) f_k (:func:`load_turn_maps`, :func:`rotate_vectors`), by
+    ``steps`` (default :data:`DEAD_LOAD_STEPS`) averaged fixed-point steps w ← ½ (w + W g(w)) from
+    w = 0. g = f + O(|f|²), so the rig keeps G as its tangent at zero load; for a rigid link on a
+    rotational spring under a load across it, w = W g(w) is k θ = F L cos θ."""
+    loads = np.asarray(loads, dtype=np.float64).reshape(-1, 3)
+    W = load_turn_maps(result)
+    w = np.zeros_like(loads)
+    for _ in range(DEAD_LOAD_STEPS if steps is None else steps):
+        w = 0.5 * (w + np.einsum("kic,c->ki", W, rotate_vectors(-w, loads).reshape(-1)))
+    return rotate_vectors(-w, loads)
 
 
 def pose_params_for_loads(result, loads) -> np.ndarray:
@@ -293,7 +353,8 @@ def deform(result, rest, params, shape_values) -> np.ndarray:
 
 
 def evaluate_loads(result, rest, loads) -> np.ndarray:
-    """Positions of the load-driven model (global or pseudo) for loads (M,3) in force units."""
+    """Positions of the load-driven model (global or pseudo) for loads (M,3) in force units: joint
+    angles and residual keys of the loads the links feel (:func:`dead_loads`)."""
     loads = np.asarray(loads, dtype=np.float64).reshape(-1, 3)
     if result.pseudo:
         out = np.array(rest, dtype=np.float64, copy=True)
@@ -303,6 +364,7 @@ def evaluate_loads(result, rest, loads) -> np.ndarray:
         return out
     if result.kappa is None:
         raise ValueError("this fit has no loads (tracked scan): pose it with deform()")
-    R, t = forward_kinematics(result.parents, result.heads, result.frames, pose_params_for_loads(result, loads))
-    x = rest + np.einsum("c,cnd->nd", greens_key_values(result, loads), greens_keys(result, rest))
+    felt = dead_loads(result, loads)
+    R, t = forward_kinematics(result.parents, result.heads, result.frames, pose_params_for_loads(result, felt))
+    x = rest + np.einsum("c,cnd->nd", greens_key_values(result, felt), greens_keys(result, rest))
     return skin(result.weights, R, t, x)

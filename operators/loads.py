@@ -14,6 +14,7 @@ import numpy as np
 from mathutils import Matrix
 
 from ..artdef_addon import drivers as _drivers
+from ..artdef_addon import model as _model
 from .replay import _key_curve, _new_action
 
 from .names import HELPER_FMT, LOAD_CONSTRAINT, LOAD_FMT, RIG_VERSION, RIG_VERSION_PROP
@@ -36,13 +37,79 @@ def _driver_fcurve(fcurve):
 
 
 def _add_load_vars(driver, empties, which):
-    """Driver variables ``x<k>``, ``y<k>``, ``z<k>`` reading load empty k's location."""
+    """Driver variables ``x<k>``, ``y<k>``, ``z<k>`` reading load k's component d: the load empty's
+    location, or (``empties`` a :class:`FeltLoads`) the load as its link feels it."""
     for k, d in which:
         var = driver.variables.new()
         var.name = f"{_AXES[d]}{k}"
         var.type = 'SINGLE_PROP'
-        var.targets[0].id = empties[k]
-        var.targets[0].data_path = f"location[{d}]"
+        if isinstance(empties, FeltLoads):
+            var.targets[0].id = empties.arm
+            var.targets[0].data_path = f'["{FELT_FMT.format(empties.step, k, _AXES[d])}"]'
+        else:
+            var.targets[0].id = empties[k]
+            var.targets[0].data_path = f"location[{d}]"
+
+
+#: custom properties of the armature: load k's component d as its link feels it after dead-load step
+#: s (:func:`artdef_addon.model.dead_loads`), the link's turn that step and its half-step W g
+FELT_FMT = "artdef_felt_{}_{}_{}"
+TURN_FMT = "artdef_turn_{}_{}_{}"
+HALF_FMT = "artdef_half_{}_{}_{}"
+
+
+class FeltLoads:
+    """The loads after dead-load step ``step`` (custom properties of ``arm``), as a source of driver
+    variables for :func:`_add_load_vars`."""
+
+    def __init__(self, arm, step):
+        self.arm, self.step = arm, step
+
+
+def _prop_var(driver, name, arm, prop):
+    var = driver.variables.new()
+    var.name = name
+    var.type = 'SINGLE_PROP'
+    var.targets[0].id = arm
+    var.targets[0].data_path = f'["{prop}"]'
+
+
+def _scripted_prop(arm, prop):
+    """A SCRIPTED driver on the armature's custom property ``prop`` (made, at 0)."""
+    arm[prop] = 0.0
+    drv = _driver_fcurve(arm.driver_add(f'["{prop}"]')).driver
+    drv.type = 'SCRIPTED'
+    return drv
+
+
+def _build_felt_loads(arm, empties, result):
+    """Drivers of the loads the links feel (:func:`artdef_addon.model.dead_loads`): per step s and
+    load k the half-step ½ W g (linear in the previous step's loads g, the empties' at the first), the
+    link's turn w_s = ½ w_(s−1) + ½ W g, and the load turned back by it (Rodrigues,
+    :func:`artdef_addon.drivers.felt_expression`). Returns the last step's :class:`FeltLoads`."""
+    W = _model.load_turn_maps(result)
+    m = W.shape[0]
+    source = empties
+    for s in range(1, _model.DEAD_LOAD_STEPS + 1):
+        for k in range(m):
+            for a in range(3):
+                half = HALF_FMT.format(s, k, _AXES[a])
+                arm[half] = 0.0
+                _drive_linear(arm, f'["{half}"]', None, 0.5 * W[k, a], source, arm, f"h{s}_{k}_{a}")
+                drv = _scripted_prop(arm, TURN_FMT.format(s, k, _AXES[a]))
+                _prop_var(drv, "h", arm, half)
+                if s > 1:
+                    _prop_var(drv, "p", arm, TURN_FMT.format(s - 1, k, _AXES[a]))
+                drv.expression = "h+0.5*p" if s > 1 else "h"
+        for k in range(m):
+            for d in range(3):
+                drv = _scripted_prop(arm, FELT_FMT.format(s, k, _AXES[d]))
+                _add_load_vars(drv, empties, [(k, 0), (k, 1), (k, 2)])
+                for a, name in enumerate(_drivers.TURN_VARS):
+                    _prop_var(drv, name, arm, TURN_FMT.format(s, k, _AXES[a]))
+                drv.expression = _drivers.felt_expression(k, d)
+        source = FeltLoads(arm, s)
+    return source
 
 
 def _drive_linear(owner, path, index, coeffs, empties, arm_obj, tag):
@@ -150,9 +217,9 @@ def _add_load_constraint(arm, pb, helper):
 
 
 def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
-    """Load empties driving the helper bones (linearly through κ) and the shape
-    keys (through the strain-hardening map); the link bones follow their helpers.
-    Returns the empties."""
+    """Load empties driving, through the loads their links feel (:func:`_build_felt_loads`), the
+    helper bones (linearly through κ) and the shape keys (through the strain-hardening map); the
+    link bones follow their helpers. Returns the empties."""
     kappa = np.asarray(result.kappa, dtype=np.float64)
     m = len(result.load_vertices)
     if load_names is None:
@@ -162,6 +229,7 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
     co = co.reshape(-1, 3)
     extent = float(np.linalg.norm(co.max(0) - co.min(0))) or 1.0
     empties = _make_load_empties(obj, arm, result, load_names, 0.02 * extent)
+    felt = _build_felt_loads(arm, empties, result)
     for l, bname in enumerate(bone_names):
         pb = arm.pose.bones[HELPER_FMT.format(l)]
         _add_load_constraint(arm, arm.pose.bones[bname], pb.name)
@@ -170,7 +238,7 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
             if not np.any(coeffs):
                 continue
             path = "rotation_euler" if j < 3 else "location"
-            _drive_linear(pb, path, j % 3, coeffs, empties, arm, f"{l:02d}_{'rl'[j // 3]}{j % 3}")
+            _drive_linear(pb, path, j % 3, coeffs, felt, arm, f"{l:02d}_{'rl'[j // 3]}{j % 3}")
     keys = obj.data.shape_keys
     probe = float(result.probe_load)
     p_max = None if result.p_max is None else float(result.p_max)
@@ -180,7 +248,7 @@ def _build_load_controls(obj, arm, result, bone_names, key_names, load_names):
         fc = _driver_fcurve(keys.driver_add(f'key_blocks["{kname}"].value'))
         drv = fc.driver
         drv.type = 'SCRIPTED'
-        _add_load_vars(drv, empties, [(k, 0), (k, 1), (k, 2)])
+        _add_load_vars(drv, felt, [(k, 0), (k, 1), (k, 2)])
         drv.expression = (_drivers.shape_value_expression(k, d, probe, p_max) if c < first
                           else _drivers.bump_value_expression(k, d, probe))
     arm[RIG_VERSION_PROP] = RIG_VERSION

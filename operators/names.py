@@ -14,8 +14,10 @@ RESIDUAL_COLOR_ATTR = "artdef_residual_color"
 #: Prefix of the temporary names of the previous rig's pieces while a new rig is built
 #: (names starting with "." are hidden from most of Blender's lists).
 STASH_PREFIX = ".artdef_prev_"
-#: a Green's rig's posing version, stored on its armature (``RIG_VERSION_PROP``): 2 = first-order
-#: and bump residual keys (model.greens_keys); a Green's rig without it was built with the probe
-#: residual scaled linearly and is told to be refitted (:func:`.rig.stale_greens_rig`)
-RIG_VERSION = 2
+#: a Green's rig's posing version, stored on its armature (``RIG_VERSION_PROP``): 3 = joint angles
+#: and residual keys of the loads the links feel (dead loads turned back by their links' turn,
+#: model.dead_loads) with first-order and bump residual keys (model.greens_keys); an older Green's rig
+#: (2: the empties' loads as they are; none: the probe residual scaled linearly) keeps posing as it
+#: did and is told to be refitted (:func:`.rig.stale_greens_rig`)
+RIG_VERSION = 3
 RIG_VERSION_PROP = "artdef_rig_version"

@@ -84,9 +84,10 @@ def has_rig(obj):
 
 def stale_greens_rig(obj) -> bool:
     """True when ``obj``'s rig is a Green's rig (load helper bones) built before
-    :data:`RIG_VERSION`: it still poses as it did (its keys and drivers are in the file), but its
-    residual keys were scaled linearly from the probe load, so it is wrong to first order between
-    and below the probe loads; the panel says to refit it."""
+    :data:`RIG_VERSION`: it still poses as it did (its keys and drivers are in the file), but it
+    either scaled its residual keys linearly from the probe load (wrong to first order between and
+    below the probe loads) or turns its joints linearly in the load (overshooting a dead load at
+    large loads); the panel says to refit it."""
     arm = obj.artdef.rig
     if arm is None or arm.type != 'ARMATURE' or arm.data.bones.get(HELPER_FMT.format(0)) is None:
         return False
