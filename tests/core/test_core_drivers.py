@@ -60,3 +60,29 @@ def test_shape_key_expressions_are_the_models_key_values(p_max):
         bump = [_eval(drivers.bump_value_expression(k, d, probe), loads) for k in range(M) for d in range(3)]
         np.testing.assert_allclose(first + bump, want, rtol=1e-7, atol=1e-12)
     np.testing.assert_allclose(model.greens_key_values(fake, axis)[3 * M::3], 1.0)
+
+
+def test_felt_load_expressions_are_the_models_rotation_and_the_turn_solves_a_spring():
+    """Each felt-load expression is component d of the load turned back by w (model.rotate_vectors of −w),
+    for turns from none to large; and a rigid link on a rotational spring under a load across it turns
+    to θ of k θ = F L cos θ within 2 % (model.dead_loads), where the linear spring's F L / k is 0.5–60 % off."""
+    rng = np.random.default_rng(3)
+    for scale in (0.0, 1e-9, 0.3, 2.5):
+        w = scale * rng.normal(size=3)
+        loads = rng.normal(size=(2, 3))
+        names = {f"{a}{k}": float(loads[k, d]) for k in range(2) for d, a in enumerate("xyz")}
+        names.update(dict(zip(drivers.TURN_VARS, map(float, w))), sqrt=math.sqrt, cos=math.cos, sin=math.sin,
+                     max=max)
+        got = [eval(drivers.felt_expression(1, d), {"__builtins__": {}}, names) for d in range(3)]
+        np.testing.assert_allclose(got, model.rotate_vectors(-w, loads[1]), rtol=1e-12, atol=1e-14)
+    L, k = 2.0, 5.0
+    kappa = np.zeros((1, 6, 3))
+    kappa[0, 0, 2] = L / k
+    rod = SimpleNamespace(kappa=kappa, load_vertices=np.array([0]), weights=np.ones((1, 1)),
+                          frames=np.eye(3)[None], parents=np.array([-1]))
+    for theta in (0.1, 0.3, 0.6, 0.9):
+        F = k * theta / (L * math.cos(theta))
+        g = model.dead_loads(rod, np.array([[0.0, 0.0, F]]))
+        got = model.pose_params_for_loads(rod, g)[0, 0]
+        assert abs(got - theta) <= 0.02 * theta and abs(F * L / k - theta) >= 0.004 * theta
+        assert np.linalg.norm(g) == pytest.approx(F)         # a dead load turns, it does not shrink
