@@ -71,16 +71,19 @@ def linear_expression(coeffs, components) -> str:
 
 def shape_value_expression(k, d, probe_load, p_max):
     """Simple expression of first-order shape key value c = 3k+d from load k (x<k>, y<k>, z<k>):
-    h(p_k)[d] / (p̂ σ), h the strain-hardening map and σ its slope at zero (identity and 1 when
-    off; :func:`artdef_addon.model.greens_key_values`)."""
+    h(p_k)[d] / (p̂ σ) / √(1 + (s/S)²), h the strain-hardening map and σ its slope at zero (identity
+    and 1 when off), s = |p_k|/p̂, S the keys' saturation (:func:`artdef_addon.model.greens_key_values`)."""
     x, y, z = (f"{a}{k}" for a in AXES)
     v = f"{AXES[d]}{k}"
+    n2 = f"({x}*{x}+{y}*{y}+{z}*{z})"
+    sat = f"/sqrt(1+{number(1.0 / (_model.KEY_SATURATION * probe_load) ** 2)}*{n2})"
     if p_max is None:
-        return f"{number(1.0 / probe_load)}*{v}"
+        return f"{number(1.0 / probe_load)}*{v}{sat}"
     # s~ = p_max (1 - q^s), q = (p_max-1)/p_max, s = |p|/p̂  ->  q^s = exp(|p| ln(q)/p̂)
     rate = math.log((p_max - 1.0) / p_max) / probe_load
-    n = f"sqrt({x}*{x}+{y}*{y}+{z}*{z})"
-    return f"{number(p_max / _model.hardening_slope(p_max))}*(1-exp({number(rate)}*{n}))*{v}/max({n},1e-30)"
+    n = f"sqrt({n2})"
+    return (f"{number(p_max / _model.hardening_slope(p_max))}*(1-exp({number(rate)}*{n}))*{v}/max({n},1e-30)"
+            + sat)
 
 
 def bump_value_expression(k, d, probe_load):
