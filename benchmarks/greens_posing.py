@@ -135,7 +135,7 @@ def main(argv=None):
             "link stretch is the largest change of a distance within one true link over its length. Bar: "
             "≤ 0.1 × rig ≤ 1.5 × G f's error; 1 × rig ≤ G f + 0.2 points; 5 × and 10 × rig ≤ 0.5 × G f's error "
             "and stretch ≤ 0.5 %, every case.\n\n" + body + "\n\nRun: `PYTHONPATH=. .venv/bin/python "
-            "benchmarks/greens_posing.py` (≈ 3 min).")
+            "benchmarks/greens_posing.py` (≈ 3–5 min).")
     if a.out != "-":
         report.write(a.out, "Green's rig posed by loads against the nonlinear truth", text)
 
