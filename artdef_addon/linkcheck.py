@@ -88,6 +88,14 @@ def _halves(x0, faces, labels, L):
     return 2 * labels + half
 
 
+def dominated_share(weights: np.ndarray, faces: np.ndarray, labels: np.ndarray, L: int):
+    """``(share (L,), face_owner (T,))``: the share of each link's faces whose mean skin weight its own
+    link dominates, and the link dominating each face's mean weight. weights (N, L)."""
+    fl = weights[faces].mean(axis=1).argmax(axis=1)
+    n = np.bincount(labels, minlength=L)
+    return np.bincount(labels, (fl == labels).astype(float), minlength=L) / np.maximum(n, 1), fl
+
+
 def check(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndarray, parents: np.ndarray,
           rotations: np.ndarray, weights: np.ndarray | None = None) -> LinkCheck:
     """The self-check of one fit: x0 (N, 3), fields (P, N, 3), faces (T, 3), labels (T,) links
@@ -118,11 +126,9 @@ def check(x0: np.ndarray, fields: np.ndarray, faces: np.ndarray, labels: np.ndar
     dom = np.full(L, np.nan)
     blends = []
     if weights is not None and L > 1:
-        fw = weights[faces].mean(axis=1)
-        own = fw.argmax(axis=1) == labels
+        dom, fl = dominated_share(weights, faces, labels, L)
+        own = fl == labels
         n = np.bincount(labels, minlength=L)
-        dom = np.bincount(labels, own.astype(float), minlength=L) / np.maximum(n, 1)
-        fl = fw.argmax(axis=1)
         for l in np.flatnonzero((n > 0) & (dom < DOMINATED_SHARE)):
             other = np.bincount(fl[(labels == l) & ~own], minlength=L)
             blends.append((int(l), int(other.argmax()), float(other.max() / n[l])))
