@@ -3,7 +3,7 @@
 
 import numpy as np
 
-from . import fitquality, rig
+from . import fitquality, parts, rig
 from .jobs import model_of
 from .props import enum_id, store_options
 from .state import LAST_RESULTS
@@ -25,12 +25,14 @@ def apply_result(context, obj, result, scan, tri_polygons, *, load_index=0, fram
     before = rig.datablock_snapshot()
     # the previous rig (or Preview Links' colours) is set aside, not removed, until the new rig
     # is built: a build that fails puts it back as it was
+    old_parts = parts.detach_parts(obj)   # the previous fit's objects per source mesh, likewise
     stash = rig.stash_rig(obj, context.scene)
     try:
         rig.build_rig(context, obj, model, tri_polygons, scan.kind, [load_index] if pseudo else None,
                       frames_per_field)
         scale = float(vertex_residual.max()) if len(vertex_residual) else 0.0
         rig.write_residual(obj.data, vertex_residual, scale)
+        parts.write_parts(context, obj)      # a joined mesh: the rig on each source mesh's object
     except Exception:
         try:
             rig.clear_rig(obj, context.scene)
@@ -40,9 +42,13 @@ def apply_result(context, obj, result, scan, tri_polygons, *, load_index=0, fram
                 # (an action, armature or empty made just before the failure)
                 rig.remove_new_datablocks(before)
             finally:
-                rig.restore_rig(stash)
+                try:
+                    rig.restore_rig(stash)
+                finally:
+                    parts.attach_parts(obj, old_parts)
         raise
     rig.drop_stash(stash)
+    parts.remove_parts(old_parts)
     LAST_RESULTS[obj.name] = model
     store_summary(obj, result, model, scan, vertex_residual, load_index=load_index,
                   frames_per_field=frames_per_field, seconds=seconds, auto_links=auto_links)

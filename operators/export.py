@@ -55,12 +55,13 @@ def rig_parts(obj):
     """(mesh, armature) of the ArtDef rig ``obj`` belongs to (either of them), or (None, None)."""
     if obj is None:
         return None, None
+    obj = parts.owner_of(obj)       # a source mesh's rigged object: the rig of the joined mesh
     if obj.type == 'MESH':
         arm = obj.artdef.rig
         return (obj, arm) if arm is not None else (None, None)
     if obj.type == 'ARMATURE':
         for o in bpy.data.objects:
-            if o.type == 'MESH' and o.artdef.rig == obj:
+            if o.type == 'MESH' and o.artdef.rig == obj and o.get(parts.PART_OF) is None:
                 return o, obj
     return None, None
 

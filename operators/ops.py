@@ -13,7 +13,7 @@ from bpy_extras.io_utils import ImportHelper
 from ..artdef_addon import api as _api
 from ..artdef_addon import scan as _scan
 from ..artdef_addon.options import FitOptions, OptionsError
-from . import compat, io, menus, rig, worker
+from . import compat, io, menus, parts, rig, worker
 from .apply import apply_result, store_summary  # noqa: F401
 from .jobs import _STAGES, _FitJob, _PreviewJob, _preview_job, model_of, stage_text  # noqa: F401
 from .modal import _WorkerModal
@@ -41,7 +41,9 @@ def cached_segmentation(obj):
 
 
 def _active_mesh(context):
-    obj = context.active_object
+    """The active mesh object; for a source mesh's rigged object (:mod:`.parts`), the joined mesh
+    it was cut from: that one holds the scan, and its fit and rig are the one over all its meshes."""
+    obj = parts.owner_of(context.active_object)
     return obj if obj is not None and obj.type == 'MESH' else None
 
 
@@ -226,7 +228,7 @@ class ARTDEF_OT_fit(FitSettings, _WorkerModal, bpy.types.Operator):
 
     def _prepare(self, context):
         """Read the scan and check the settings; returns a job or None (reported)."""
-        obj = context.active_object
+        obj = _active_mesh(context)
         shared = shared_rig_message(obj)
         if shared is not None:
             self.report({'ERROR'}, shared)
@@ -343,7 +345,7 @@ class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
 
     def _prepare(self, context):
         try:
-            return _preview_job(context.active_object, self.links)
+            return _preview_job(_active_mesh(context), self.links)
         except (_scan.ScanError, ValueError) as err:
             self.report({'ERROR'}, str(err))
             return None
@@ -359,7 +361,7 @@ class ARTDEF_OT_preview_links(_WorkerModal, bpy.types.Operator):
     #    with progress in the status bar and Esc to cancel (a cached one is instant)
     def invoke(self, context, event):
         if not self.properties.is_property_set("links"):
-            self.links = context.active_object.artdef.links
+            self.links = _active_mesh(context).artdef.links
         if bpy.app.background or context.window is None:
             return self.execute(context)
         job = self._prepare(context)
@@ -453,7 +455,7 @@ class ARTDEF_OT_clear_rig(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        obj = context.active_object
+        obj = _active_mesh(context)
         shared = shared_rig_message(obj)
         if shared is not None:
             self.report({'ERROR'}, shared)

@@ -131,36 +131,128 @@ def join_scans(context, copies, names):
     return target
 
 
+#: the ID property on a source mesh's rigged object that points at the joined mesh it was cut from
+PART_OF = "artdef_part_of"
+#: the name of the object a fit writes for each source mesh: ``Body_rigged``
+PART_NAME = "{}_rigged"
+
+
+def _part_ranges(obj):
+    """``(names, starts, ends)`` of the joined mesh ``obj``'s parts, or None for a scan of one mesh."""
+    names = list(obj.data.get("artdef_parts", []))
+    sizes = [int(s) for s in obj.data.get("artdef_part_sizes", [])]
+    if len(names) < 2 or len(sizes) != len(names) or sum(sizes) != len(obj.data.vertices):
+        return None
+    ends = np.cumsum(sizes)
+    return names, ends - np.asarray(sizes), ends
+
+
+def _keep_only(obj, start, end):
+    """Delete every vertex of ``obj``'s own mesh outside ``start..end`` (bmesh keeps the rest's
+    vertex groups, shape keys and attributes, in order)."""
+    import bmesh
+    n = len(obj.data.vertices)
+    out_of_part = np.flatnonzero((np.arange(n) < start) | (np.arange(n) >= end))
+    bm = bmesh.new()
+    try:
+        bm.from_mesh(obj.data)
+        bm.verts.ensure_lookup_table()
+        bmesh.ops.delete(bm, geom=[bm.verts[int(i)] for i in out_of_part], context='VERTS')
+        bm.to_mesh(obj.data)
+    finally:
+        bm.free()
+    obj.data.update()
+
+
+def _copy_object(obj, name):
+    part = obj.copy()
+    part.data = obj.data.copy()
+    for coll in obj.users_collection:
+        coll.objects.link(part)
+    part.name = part.data.name = name
+    return part
+
+
 def split_parts(context, obj):
     """Cut the export copy ``obj`` of a joined scan back into its source meshes: ``obj`` keeps the
     first part, a new object per other part (named after its source mesh, with ``_scan``) holds
     that part's vertices with their vertex groups, shape keys, modifiers and parent. Returns the
     new objects (none for a scan of one mesh). Each is exported as its own mesh."""
-    import bmesh
-    names = list(obj.data.get("artdef_parts", []))
-    sizes = [int(s) for s in obj.data.get("artdef_part_sizes", [])]
-    n = len(obj.data.vertices)
-    if len(names) < 2 or len(sizes) != len(names) or sum(sizes) != n:
+    ranges = _part_ranges(obj)
+    if ranges is None:
         return []
-    ends = np.cumsum(sizes)
-    starts = ends - np.asarray(sizes)
-    out = []
-    for k in range(1, len(names)):          # every copy made before any part is cut out
-        part = obj.copy()
-        part.data = obj.data.copy()
-        for coll in obj.users_collection:
-            coll.objects.link(part)
-        part.name = part.data.name = f"{names[k]}_scan"
-        out.append(part)
+    names, starts, ends = ranges
+    out = [_copy_object(obj, f"{name}_scan") for name in names[1:]]   # all copied before any cut
     for k, part in enumerate([obj, *out]):
-        out_of_part = (np.arange(n) < starts[k]) | (np.arange(n) >= ends[k])
-        bm = bmesh.new()
-        try:
-            bm.from_mesh(part.data)
-            bm.verts.ensure_lookup_table()
-            bmesh.ops.delete(bm, geom=[bm.verts[int(i)] for i in np.flatnonzero(out_of_part)], context='VERTS')
-            bm.to_mesh(part.data)
-        finally:
-            bm.free()
-        part.data.update()
+        _keep_only(part, starts[k], ends[k])
+    return out
+
+
+def parts_of(obj):
+    """The rigged objects written for the source meshes of the joined mesh ``obj`` (in part order)."""
+    found = [o for o in bpy.data.objects if o.get(PART_OF) == obj]
+    order = {n: i for i, n in enumerate(obj.data.get("artdef_parts", []))} if obj.type == 'MESH' else {}
+    return sorted(found, key=lambda o: (order.get(o.get("artdef_part_name"), len(order)), o.name))
+
+
+def owner_of(obj):
+    """The joined mesh a source mesh's rigged object was cut from, else ``obj`` itself."""
+    owner = obj.get(PART_OF) if obj is not None else None
+    return owner if isinstance(owner, bpy.types.Object) and owner.name in bpy.data.objects else obj
+
+
+def detach_parts(obj):
+    """Set the rigged objects of ``obj``'s previous fit aside (no longer counted as its parts)
+    while a re-fit builds its own; :func:`attach_parts` puts them back, :func:`remove_parts` removes them."""
+    old = parts_of(obj)
+    for part in old:
+        del part[PART_OF]
+    return old
+
+
+def attach_parts(obj, old):
+    for part in old:
+        part[PART_OF] = obj
+    if old:
+        obj.hide_set(True)
+
+
+def remove_parts(objects):
+    for part in list(objects):
+        data = part.data
+        bpy.data.objects.remove(part, do_unlink=True)
+        if data is not None and data.users == 0:
+            bpy.data.meshes.remove(data)
+
+
+def write_parts(context, obj):
+    """Write the rig of the joined mesh ``obj`` onto one object per source mesh: a copy holding that
+    mesh's vertices (in the source's order) with their vertex groups, residual shape keys (their
+    replay action shared), the Armature modifier and the parent (the one armature), named
+    :data:`PART_NAME` of the source. ``obj`` keeps the scan (a re-fit, Clear Rig) and is hidden.
+    Replaces the parts written before. Returns the new objects (none for a scan of one mesh)."""
+    from . import io
+    remove_parts(parts_of(obj))
+    ranges = _part_ranges(obj)
+    if ranges is None:
+        return []
+    names, starts, ends = ranges
+    out = []
+    try:
+        for name in names:
+            part = _copy_object(obj, PART_NAME.format(name))
+            part[PART_OF] = obj
+            part["artdef_part_name"] = name
+            out.append(part)
+        for part, start, end in zip(out, starts, ends):
+            _keep_only(part, start, end)
+            io.clear_scan(part.data)          # the scan stays the joined mesh's: a re-fit fits it
+            for key in ("artdef_parts", "artdef_part_sizes"):
+                if key in part.data:
+                    del part.data[key]
+            part.hide_set(False)
+    except Exception:
+        remove_parts(out)
+        raise
+    obj.hide_set(True)
     return out

@@ -27,6 +27,9 @@ re-fit remove exactly this:
   p at frame (p+1)·frames_per_field (frame 0 = rest).  Either way the scene's
   frame range is set to cover the animation (restored by Clear Rig if still
   unchanged);
+* a mesh joined from several source meshes (:mod:`.parts`): one object per source mesh
+  ``<source>_rigged`` with that mesh's vertices, groups, residual keys, modifier and parent (the
+  joined mesh keeps the scan and is hidden);
 * the face colour attribute ``artdef_links`` (active), the per-vertex
   articulation residual ``artdef_residual`` (FLOAT, POINT) and its colours
   ``artdef_residual_color`` (FLOAT_COLOR, POINT, blue = 0 → red = largest).
@@ -153,6 +156,11 @@ def clear_rig(obj, scene=None):
     """
     st = obj.artdef
     _restore_frame_range(st, scene if scene is not None else bpy.context.scene)
+    from . import parts            # a joined mesh's rigged objects, one per source mesh
+    rigged = parts.parts_of(obj)
+    parts.remove_parts(rigged)
+    if rigged and obj.name in bpy.context.view_layer.objects:
+        obj.hide_set(False)
     mesh = obj.data
     world = obj.matrix_world.copy()
     arm = st.rig

@@ -36,8 +36,8 @@ class ARTDEF_PT_main(bpy.types.Panel):
         col.operator("artdef.import_scan", icon='IMPORT')
         col.operator("artdef.import_mesh_sequence", icon='FILE_FOLDER')
         col.operator("artdef.fields_from_file", icon='FILE_MOVIE')
-        obj = context.active_object
-        if obj is None or obj.type != 'MESH':
+        obj = ops._active_mesh(context)      # a source mesh's rigged object: the joined mesh
+        if obj is None:
             layout.label(text="Select a mesh to fit", icon='INFO')
             return
         mesh = obj.data

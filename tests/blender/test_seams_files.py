@@ -94,19 +94,66 @@ def two_meshes(installed_addon, tmp_path_factory):
     return source
 
 
-def test_every_animated_mesh_is_fitted_as_one_rig(two_meshes, tmp_path):
-    out = tmp_path / "out.glb"
-    proc = _ok(_run(["-m", "artdef_addon", "fit", str(two_meshes), "--links", "6", "--glb", str(out)], cwd=tmp_path))
-    note = next(ln for ln in proc.stdout.splitlines() if "meshes fitted:" in ln)
-    assert "meshes fitted: Leg, Other; left out: " in note and "Prop (static)" in note, note
-    assert "(a bone's custom shape)" in note      # the importer's bone shapes
+@pytest.fixture(scope="module")
+def two_fitted(two_meshes, tmp_path_factory):
+    d = tmp_path_factory.mktemp("two_fit")
+    out, blend = d / "out.glb", d / "out.blend"
+    proc = _ok(_run(["-m", "artdef_addon", "fit", str(two_meshes), "--links", "6", "--glb", str(out),
+                     "--blend", str(blend)], cwd=d))
+    return proc, out, blend
+
+
+def _sources(two_meshes):
+    """The source file's two skinned meshes (Leg, Other), each playing its own animation."""
     imported = _import(two_meshes)
     for arm in (o for o in imported if o.type == 'ARMATURE' and o.animation_data.action is None):
         # Blender's importer plays one animation; the other character's waits in an NLA track
         arm.animation_data.action = arm.animation_data.nla_tracks[0].strips[0].action
         if hasattr(arm.animation_data, "action_slot") and arm.animation_data.action_slot is None:
             arm.animation_data.action_slot = arm.animation_data.action.slots[0]
-    sources = sorted((o for o in imported if o.type == 'MESH' and o.find_armature() is not None), key=lambda o: o.name)
+    return sorted((o for o in imported if o.type == 'MESH' and o.find_armature() is not None), key=lambda o: o.name)
+
+
+def test_each_source_mesh_has_its_own_rigged_object_in_the_blend(two_meshes, two_fitted):
+    sources = _sources(two_meshes)
+    refs = {o.name: world_positions(o, KEYED) for o in sources}
+    counts = {o.name: len(o.data.vertices) for o in sources}
+    assert bpy.ops.wm.open_mainfile(filepath=str(two_fitted[2])) == {'FINISHED'}
+    rigged = sorted((o for o in bpy.data.objects if o.get("artdef_part_of") is not None), key=lambda o: o.name)
+    assert [o.name for o in rigged] == ["Leg_rigged", "Other_rigged"]
+    joined = rigged[0]["artdef_part_of"]
+    arm = joined.artdef.rig
+    assert arm is not None and arm.type == 'ARMATURE'
+    assert all(o.parent == arm for o in rigged)                            # one armature over both
+    for obj in rigged:
+        name = obj["artdef_part_name"]
+        mods = [m for m in obj.modifiers if m.type == 'ARMATURE']
+        assert len(mods) == 1 and mods[0].object == arm
+        assert sorted(vg.name for vg in obj.vertex_groups) == sorted(b.name for b in arm.data.bones)
+        keys = obj.data.shape_keys
+        ours = joined.data.shape_keys                                      # the fit's residual keys and replay
+        assert keys is not None and [k.name for k in keys.key_blocks] == [k.name for k in ours.key_blocks]
+        assert keys.animation_data.action == ours.animation_data.action
+        assert len(obj.data.vertices) == counts[name]                      # the source's vertices, no other
+        moved, rest = world_positions(obj, KEYED)                          # through the depsgraph
+        worst, rms = compare(*refs[name], moved, rest)
+        assert worst < MAX_TOL and rms < RMS_TOL, (name, worst, rms)
+        assert np.abs(moved - rest).max() > 0.05 * float(np.linalg.norm(np.ptp(rest, axis=0)))
+    # the panel's object for either is the joined scan, and Clear Rig removes all of the rig
+    bpy.context.view_layer.objects.active = rigged[1]
+    with bpy.context.temp_override(active_object=rigged[1], object=rigged[1]):
+        assert bpy.ops.artdef.clear_rig() == {'FINISHED'}
+    assert not [o for o in bpy.data.objects if o.get("artdef_part_of") is not None]
+    assert not [o for o in bpy.data.objects if o.type == 'ARMATURE' and o.get("artdef_rig")]
+    assert not joined.modifiers and not joined.hide_get()
+
+
+def test_every_animated_mesh_is_fitted_as_one_rig(two_meshes, two_fitted):
+    proc, out, _ = two_fitted
+    note = next(ln for ln in proc.stdout.splitlines() if "meshes fitted:" in ln)
+    assert "meshes fitted: Leg, Other; left out: " in note and "Prop (static)" in note, note
+    assert "(a bone's custom shape)" in note      # the importer's bone shapes
+    sources = _sources(two_meshes)
     assert sorted(o.name for o in sources) == ["Leg", "Other"]
     refs = [world_positions(o, KEYED) for o in sources]
     objects = _import(out)
