@@ -49,6 +49,7 @@ def apply_result(context, obj, result, scan, tri_polygons, *, load_index=0, fram
         raise
     rig.drop_stash(stash)
     parts.remove_parts(old_parts)
+    parts.settle_names(obj)
     LAST_RESULTS[obj.name] = model
     store_summary(obj, result, model, scan, vertex_residual, load_index=load_index,
                   frames_per_field=frames_per_field, seconds=seconds, auto_links=auto_links)

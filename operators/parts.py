@@ -6,7 +6,9 @@ from File fits all of them together as one scan: each mesh is sampled by Fields 
 over the same frames, the copies are put in world space and joined into one mesh object (its
 materials and UV maps kept), whose scan holds every mesh's vertices. One fit, one armature.
 The joined mesh records its parts (``artdef_parts``: the source mesh names in vertex order,
-``artdef_part_sizes``: their vertex counts).
+``artdef_part_sizes``: their vertex counts). After the fit, :func:`write_parts` writes the rig
+on one object per source mesh (``<source>_rigged``, pointing back at the joined mesh with
+``artdef_part_of``), and the joined mesh, which keeps the scan, is hidden.
 """
 
 import bpy
@@ -215,6 +217,17 @@ def attach_parts(obj, old):
         part[PART_OF] = obj
     if old:
         obj.hide_set(True)
+
+
+def settle_names(obj):
+    """Give the rigged objects of ``obj`` their own names (:data:`PART_NAME`) once the previous fit's
+    are gone (made beside them, they got a ``.001``)."""
+    for part in parts_of(obj):
+        name = PART_NAME.format(part.get("artdef_part_name", part.name))
+        if part.name != name and name not in bpy.data.objects:
+            part.name = name
+        if part.data.name != name and name not in bpy.data.meshes:
+            part.data.name = name
 
 
 def remove_parts(objects):

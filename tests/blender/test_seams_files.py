@@ -99,7 +99,7 @@ def two_fitted(two_meshes, tmp_path_factory):
     d = tmp_path_factory.mktemp("two_fit")
     out, blend = d / "out.glb", d / "out.blend"
     proc = _ok(_run(["-m", "artdef_addon", "fit", str(two_meshes), "--links", "6", "--glb", str(out),
-                     "--blend", str(blend)], cwd=d))
+                     "--blend", str(blend), "-o", str(d / "result.npz")], cwd=d))
     return proc, out, blend
 
 
@@ -177,3 +177,34 @@ def test_mesh_option_fits_the_chosen_mesh_only(two_meshes, tmp_path):
     assert "tracked scan, 456 vertices" in proc.stdout, proc.stdout      # Other's own (half of both)
     bad = _run(["-m", "artdef_addon", "fit", str(two_meshes), "--links", "3", "--mesh", "Nope"], cwd=tmp_path)
     assert bad.returncode == 2 and "no mesh named 'Nope'" in bad.stderr, bad.stderr
+
+
+def test_a_refit_replaces_its_own_rigged_objects_and_a_failed_one_keeps_them(two_fitted, monkeypatch):
+    import importlib
+    from artdef_addon.result import load_result
+    from conftest import ADDON_MODULE
+    apply = importlib.import_module(ADDON_MODULE + ".operators.apply")
+    io = importlib.import_module(ADDON_MODULE + ".operators.io")
+    parts = importlib.import_module(ADDON_MODULE + ".operators.parts")
+    assert bpy.ops.wm.open_mainfile(filepath=str(two_fitted[2])) == {'FINISHED'}
+    joined = next(o for o in bpy.data.objects if o.type == 'MESH' and len(o.data.get("artdef_parts", [])) == 2)
+    result = load_result(two_fitted[1].parent / "result.npz")
+    stored = io.read_scan(joined)
+    before = {o.name for o in bpy.data.objects}
+    apply.apply_result(bpy.context, joined, result, stored.scan, stored.tri_polygons)
+    rigged = parts.parts_of(joined)
+    assert [o.name for o in rigged] == ["Leg_rigged", "Other_rigged"]        # the new ones, named as before
+    assert {o.name for o in bpy.data.objects} == before                         # nothing else added or left
+    arm = joined.artdef.rig
+    assert all(o.parent == arm and o.modifiers[0].object == arm for o in rigged)
+    assert len([o for o in bpy.data.objects if o.type == 'ARMATURE' and o.get("artdef_rig")]) == 1
+    names = {o.name: getattr(o.data, "name", None) for o in bpy.data.objects}
+
+    def broken(context, obj):
+        raise RuntimeError("write failed")
+    monkeypatch.setattr(parts, "write_parts", broken)
+    with pytest.raises(RuntimeError, match="write failed"):
+        apply.apply_result(bpy.context, joined, result, stored.scan, stored.tri_polygons)
+    assert parts.parts_of(joined) == rigged and joined.artdef.rig == arm        # the scene as it was
+    assert {o.name: getattr(o.data, "name", None) for o in bpy.data.objects} == names and joined.hide_get()
+    assert all(o.parent == arm and o.modifiers[0].object == arm for o in rigged)
