@@ -8,6 +8,8 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
+from ophelpers import evaluated_positions
+
 L, K = 2.0, 5.0          # link length, spring stiffness (moment per radian)
 
 
@@ -63,14 +65,8 @@ def _result(core, v, faces, probe):
 
 
 def _tip(obj):
-    dg = bpy.context.evaluated_depsgraph_get()
-    dg.update()
-    ev = obj.evaluated_get(dg)
-    mesh = ev.to_mesh()
-    try:
-        return np.array(mesh.vertices[0].co, dtype=np.float64)
-    finally:
-        ev.to_mesh_clear()
+    """The evaluated (posed) position of the link's tip, vertex 0."""
+    return evaluated_positions(obj)[0]
 
 
 def test_a_rigid_link_on_a_rotational_spring_turns_as_a_dead_load_turns_it(clean_scene, core, tmp_path):
