@@ -161,6 +161,7 @@ def pkg(installed_addon):
         samples = importlib.import_module(installed_addon + ".artdef_addon.samples")
         model = importlib.import_module(installed_addon + ".artdef_addon.model")
         residuals = importlib.import_module(installed_addon + ".artdef_addon.residuals")
+        result = importlib.import_module(installed_addon + ".artdef_addon.result")
         ops = importlib.import_module(installed_addon + ".operators.ops")
         api = importlib.import_module(installed_addon + ".artdef_addon.api")
         cost = importlib.import_module(installed_addon + ".artdef_addon.cost")

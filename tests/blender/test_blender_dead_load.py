@@ -1,8 +1,6 @@
 """A rigid link on a rotational spring under a dead load, posed through the rig's real drivers in Blender:
 the link turns to the angle θ of k θ = F L cos θ (the load keeps its direction while the moment arm
 shortens), not to the linear spring's F L / k."""
-import importlib
-
 import numpy as np
 import pytest
 
@@ -11,16 +9,6 @@ bpy = pytest.importorskip("bpy")
 from ophelpers import evaluated_positions
 
 L, K = 2.0, 5.0          # link length, spring stiffness (moment per radian)
-
-
-@pytest.fixture(scope="module")
-def core(installed_addon):
-    class P:
-        files = importlib.import_module(installed_addon + ".artdef_addon.files")
-        scan = importlib.import_module(installed_addon + ".artdef_addon.scan")
-        result = importlib.import_module(installed_addon + ".artdef_addon.result")
-        rig = importlib.import_module(installed_addon + ".operators.rig")
-    return P
 
 
 def _rod():
@@ -45,10 +33,10 @@ def _hinge_greens(v, probe):
     return G
 
 
-def _result(core, v, faces, probe):
+def _result(pkg, v, faces, probe):
     """The fit of the hinge's scan: one grounded link, κ of the spring, and the residual that makes each
     probe field (linear: G p̂ e_c) exact at the probe pose, δ_c = R_cᵀ (x0 + G p̂ e_c) − x0."""
-    FR = core.result.FitResult
+    FR = pkg.result.FitResult
     n, kappa = len(v), np.zeros((1, 6, 3))
     kappa[0, 0, 2] = L / K           # θ_x from a load along z: (r × F)_x = L F_z
     kappa[0, 2, 0] = -L / K          # θ_z from a load along x: (r × F)_z = −L F_x
@@ -69,17 +57,17 @@ def _tip(obj):
     return evaluated_positions(obj)[0]
 
 
-def test_a_rigid_link_on_a_rotational_spring_turns_as_a_dead_load_turns_it(clean_scene, core, tmp_path):
+def test_a_rigid_link_on_a_rotational_spring_turns_as_a_dead_load_turns_it(clean_scene, pkg, tmp_path):
     assert not bpy.context.preferences.filepaths.use_scripts_auto_execute
     v, faces = _rod()
     probe = 0.1 * K / L                       # turns the rod by 0.1 rad to first order
-    scan = core.scan.Scan(v, faces, greens=_hinge_greens(v, probe), load_vertices=np.array([0]),
+    scan = pkg.scan.Scan(v, faces, greens=_hinge_greens(v, probe), load_vertices=np.array([0]),
                           support_vertices=np.arange(5, 9), probe_load=probe)
     path = str(tmp_path / "rod.npz")
-    core.files.write_scan(path, scan)
+    pkg.files.write_scan(path, scan)
     assert bpy.ops.artdef.import_scan(filepath=path) == {'FINISHED'}
     obj = bpy.context.view_layer.objects.active
-    core.rig.build_rig(bpy.context, obj, _result(core, v, faces, probe), np.arange(len(faces)), "greens")
+    pkg.rig.build_rig(bpy.context, obj, _result(pkg, v, faces, probe), np.arange(len(faces)), "greens")
     for fc in list(obj.artdef.rig.animation_data.drivers) + list(obj.data.shape_keys.animation_data.drivers):
         assert fc.driver.is_valid and (fc.driver.type != 'SCRIPTED' or fc.driver.is_simple_expression)
     emp = bpy.data.objects["artdef_load_0"]
