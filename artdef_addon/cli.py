@@ -427,6 +427,8 @@ def _cmd_fit(a, headless=None, hand_over=None) -> int:
                     print(f"note: {os.path.basename(a.scan)}: {which}")
         except RuntimeError as exc:
             line = str(exc).splitlines()[0] if str(exc) else "cannot read the file"
+            for p in (a.scan, *a.clip):         # paths as the user typed them
+                line = line.replace(os.path.abspath(p).rstrip(os.sep), p.rstrip(os.sep) or p)
             if not any(os.path.basename(p.rstrip("/")) in line for p in (a.scan, *a.clip)):
                 line = f"{a.scan}: {line}"      # an importer's own message names no file
             raise _BadInput(line) from None

@@ -68,13 +68,13 @@ class WorkerError(Exception):
 
 # ---------------------------------------------------------------------------------------- parent
 
-def _child_env(paths) -> dict:
+def _child_env(paths, inherit: bool = True) -> dict:
     """The child's environment: this core's parent folder first (so ``-m artdef_addon.procs``
-    finds this very package, also inside an installed extension), then ``paths``, then the
-    folders on this process's ``sys.path`` (numpy, the extension's bundled scipy)."""
+    finds this very package, also inside an installed extension), then ``paths``, then (``inherit``)
+    the folders on this process's ``sys.path`` (numpy, the extension's bundled scipy)."""
     core_parent = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     seen, order = set(), []
-    for p in [core_parent, *paths, *sys.path]:
+    for p in [core_parent, *paths, *(sys.path if inherit else ())]:
         p = os.path.abspath(p) if p else ""
         if p and p not in seen and os.path.isdir(p):
             seen.add(p)
@@ -217,16 +217,19 @@ class Worker:
     paid once, not per call). ``env``: extra environment variables for the child. ``own_group``:
     the child leads its own process group (killed with everything it starts, and the terminal's
     Ctrl-C is the parent's); a :class:`Pool`'s workers stay in their parent's group instead, so
-    that killing the parent's group ends them too."""
+    that killing the parent's group ends them too. ``inherit_path``: False for a child that must
+    find its own modules only (one with Blender: the parent's ``bpy`` folders would shadow its own)."""
 
     def __init__(self, *, memory_limit: float | None = None, paths=(), preload=(), interpreter=None,
-                 env: dict | None = None, name: str = "artdef-worker", own_group: bool = True):
+                 env: dict | None = None, name: str = "artdef-worker", own_group: bool = True,
+                 inherit_path: bool = True):
         self.memory_limit = None if memory_limit is None else float(memory_limit)
         self.paths, self.preload = list(paths), list(preload)
         self.interpreter = list(interpreter) if interpreter else [sys.executable]
         self.extra_env = dict(env or {})
         self.name = name
         self.own_group = own_group
+        self.inherit_path = inherit_path
         self.folder = None
         self.process = None
         self.killed = False
@@ -242,7 +245,12 @@ class Worker:
         with open(os.path.join(self.folder, "worker.json"), "w", encoding="utf-8") as f:
             json.dump({"memory_limit": self.memory_limit, "preload": self.preload,
                        "parent": os.getpid()}, f)
-        env = _child_env(self.paths)
+        env = _child_env(self.paths, self.inherit_path)
+        # the child's temporaries (Blender's session folder among them) go inside the worker's
+        # folder, which close() removes whatever the child did: also after a crash or a kill
+        tmp = os.path.join(self.folder, "tmp")
+        os.mkdir(tmp)
+        env.update({"TMPDIR": tmp, "TEMP": tmp, "TMP": tmp})
         env.update(self.extra_env)
         self._log = open(os.path.join(self.folder, "stderr.txt"), "wb")
         kw = {}

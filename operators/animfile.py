@@ -18,13 +18,14 @@ import os
 
 import bpy
 import numpy as np
-from bpy.props import StringProperty
+from bpy.props import BoolProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import compat, menus, parts, rig
+from . import compat, isolated, menus, parts, rig
 from .ops import in_object_mode
 from .sources import FrameRange
 from ..artdef_addon import cli as _cli
+from ..artdef_addon import filecheck
 from ..artdef_addon.cli import SEQUENCE_EXTENSIONS
 
 #: extension -> (importer operator path, keyword arguments)
@@ -79,6 +80,41 @@ def _actions_moving(obj):
         if ad is not None and ad.action is not None:
             out.append((ad.action, getattr(ad, "action_slot", None)))
     return out
+
+
+def check_keys(actions):
+    """ValueError naming the first of ``actions`` with a keyframe whose time or value is NaN or
+    infinite, or a rotation key whose quaternion is zero (a damaged file's keys: Blender clamps
+    such values or rounds such times, and its USD importer keys NaN rotations as zero quaternions,
+    so the frames sampled from them would look plausible and be wrong)."""
+    for action in actions:
+        quats = {}
+        for fc in compat.action_fcurves(action):
+            n = len(fc.keyframe_points)
+            if not n:
+                continue
+            co = np.empty(2 * n, dtype=np.float64)
+            fc.keyframe_points.foreach_get("co", co)
+            co = co.reshape(n, 2)
+            bad = ~np.isfinite(co)
+            if bad.any():
+                k = int(np.flatnonzero(bad.any(axis=1))[0])
+                where = ("a keyframe time" if bad[k, 0] else f"the key at frame {co[k, 0]:g}")
+                raise ValueError(f"its animation '{action.name}' ({fc.data_path}) holds NaN or infinite "
+                                 f"numbers: {where} is not a number")
+            if fc.data_path.endswith("rotation_quaternion"):
+                quats.setdefault(fc.data_path, {})[fc.array_index] = co
+        for path, channels in quats.items():
+            if len(channels) != 4 or len({len(c) for c in channels.values()}) != 1:
+                continue
+            times = channels[0][:, 0]
+            if any(not np.array_equal(c[:, 0], times) for c in channels.values()):
+                continue
+            norm = np.sqrt(sum(c[:, 1] ** 2 for c in channels.values()))
+            if (norm < 1e-6).any():
+                k = int(np.flatnonzero(norm < 1e-6)[0])
+                raise ValueError(f"its animation '{action.name}' ({path}) holds a zero rotation (a quaternion "
+                                 f"of length 0) in its key {k + 1} (frame {times[k]:g}): the file's keys are damaged")
 
 
 def activate_own_animations(objects):
@@ -268,13 +304,16 @@ def clip_name(path):
 
 
 def import_animated(context, path):
-    """Import ``path`` with Blender's importer; return the new objects."""
+    """Import ``path`` with Blender's importer; return the new objects. ValueError when the
+    importer reads nothing, or when a new action's keys are not finite (:func:`check_keys`)."""
     ext = os.path.splitext(path)[1].lower()
     op_path, kwargs = IMPORTERS[ext]
     before = set(bpy.data.objects)
+    actions = set(bpy.data.actions)
     result = _operator(op_path)(filepath=path, **kwargs)
     if 'FINISHED' not in result:
-        raise ValueError(f"Blender's importer could not read {os.path.basename(path)}")
+        raise ValueError("could not read the file")
+    check_keys([a for a in bpy.data.actions if a not in actions])
     return [o for o in bpy.data.objects if o not in before]
 
 
@@ -313,6 +352,9 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
     meshes: StringProperty(name="Meshes", default="",
                            description="Names of the meshes to fit, separated by commas (empty: every "
                                        "animated mesh of the file, fitted together as one scan)")
+    isolate: BoolProperty(name="Read in a Child Process First", default=True, options={'HIDDEN', 'SKIP_SAVE'},
+                          description="Read and sample the file in a separate process before importing it "
+                                      "here, so that an importer crash on a damaged file cannot close Blender")
 
     @classmethod
     def poll(cls, context):
@@ -336,6 +378,19 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
             except RuntimeError as err:  # its ERROR report, once more as this operator's
                 self.report({'ERROR'}, operator_error(err))
                 return {'CANCELLED'}
+        if os.path.getsize(path) == 0:
+            self.report({'ERROR'}, f"{os.path.basename(path)}: the file is empty")
+            return {'CANCELLED'}
+        bad = filecheck.gltf_not_finite(path) if path.lower().endswith((".glb", ".gltf")) else None
+        if bad:
+            self.report({'ERROR'}, f"{os.path.basename(path)}: {bad}")
+            return {'CANCELLED'}
+        if self.isolate:
+            try:
+                isolated.read_in_child(path, self.meshes, self.given_frames())
+            except RuntimeError as err:
+                self.report({'ERROR'}, str(err))
+                return {'CANCELLED'}
         # a failure anywhere below leaves bpy.data and the scene's frames as they were: the
         # importer's meshes, materials and actions too, not only its objects
         before = rig.datablock_snapshot()
@@ -357,8 +412,12 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
         try:
             new = import_animated(context, path)
         except (RuntimeError, ValueError) as err:
-            line = operator_error(err) if isinstance(err, RuntimeError) else str(err).strip()
-            self.report({'ERROR'}, f"Cannot import {os.path.basename(path)}: {line}")
+            if isinstance(err, ValueError) and str(err).startswith("its animation"):
+                line = f"{os.path.basename(path)}: {err}"
+            else:
+                words = operator_error(err) if isinstance(err, RuntimeError) else str(err).strip()
+                line = filecheck.importer_error(path, words)
+            self.report({'ERROR'}, line)
             return {'CANCELLED'}
         activate_own_animations(new)
         try:

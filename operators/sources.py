@@ -88,13 +88,19 @@ def _read_positions(mesh, out):
         mesh.vertices.foreach_get("co", out)
 
 
+#: the farthest a sampled frame may move a vertex, in sizes of the mesh: beyond it the animation is
+#: damaged (a flipped exponent bit in a file's numbers), not a motion to fit
+MAX_FRAME_REACH = 1e6
+
+
 def sample_positions(context, obj, frames):
     """Object-space vertex positions of ``obj`` evaluated at ``frames``: (F, N, 3) float32.
 
     Modifiers that change the topology are switched off meanwhile; the scene
     frame and the modifiers are restored afterwards.  Raises ``ScanError``
     ("connectivity differs at frame F: ...") when a frame's evaluated mesh
-    does not have the base mesh's vertices and faces.
+    does not have the base mesh's vertices and faces, and ("frame F: ...")
+    at the first frame whose positions are not all finite.
     """
     scene = context.scene
     n, base_polys, base_corners = _topology(obj.data)
@@ -123,6 +129,10 @@ def sample_positions(context, obj, frames):
                         f"connectivity differs at frame {frame}: the faces changed "
                         f"({n_polys} faces, expected {base_polys})")
                 _read_positions(me, out[i].reshape(-1))
+                if not np.isfinite(out[i]).all():     # a damaged file's NaN morph targets or keys
+                    bad = int(np.count_nonzero(~np.isfinite(out[i]).all(axis=1)))
+                    raise _scan.ScanError(f"frame {frame}: {bad} of {n} vertex positions are NaN or infinite "
+                                          "(the file's animation holds values that are not numbers)")
             finally:
                 ev.to_mesh_clear()
     finally:
@@ -261,6 +271,12 @@ class ARTDEF_OT_fields_from_animation(bpy.types.Operator):
             rest = rest.reshape(n, 3).astype(np.float64)
         disp = positions[[at[f] for f in frames]].astype(np.float64) - rest[None]
         extent = float(np.ptp(rest, axis=0).max()) or 1.0
+        reach = np.abs(disp).reshape(len(frames), -1).max(axis=1)
+        if (reach > MAX_FRAME_REACH * extent).any():
+            k = int(np.flatnonzero(reach > MAX_FRAME_REACH * extent)[0])
+            self.report({'ERROR'}, f"'{obj.name}': frame {frames[k]} moves a vertex by {reach[k]:.3g}, over "
+                                   f"{MAX_FRAME_REACH:.0e} times the mesh's size (the animation is damaged)")
+            return {'CANCELLED'}
         moves = np.abs(disp).reshape(len(frames), -1).max(axis=1) > 1e-6 * extent
         kept = [f for f, m in zip(frames, moves) if m]
         if not kept:
