@@ -6,7 +6,9 @@ of their vertices), split into UV islands (one per true bone), and as triangle s
 own vertex). Each line prints the stored and distinct vertex counts, the Karni–Gotsman error, the fit's
 seconds and both as ratios to the welded fit; "no weld" fits the seam-across-the-body mesh through the
 core's ``fit.fit``, which does not close seams (what every fit did before). The issue's bars: error
-≤ 1.1 × welded + 0.02 points, a cut mesh ≤ 1.2 × + 0.01 points in ≤ 1.5 × the time.
+≤ 1.1 × welded + 0.02 points, a cut mesh ≤ 1.2 × + 0.01 points in ≤ 1.5 × the time; the table's
+last column says whether a line meets its bar. ``generated`` is an asset no test uses: the
+branching object of ``benchmarks/generate.py`` refined to 4,288 triangles, 12 poses of seed 11.
 
     .venv/bin/python benchmarks/seams.py [--data ../shared/data] [--only CesiumMan] [--repeats 3]
 
@@ -31,7 +33,34 @@ from artdef_addon import api, pipeline as PL  # noqa: E402
 from artdef_addon.scan import Scan, validate_scan  # noqa: E402
 from seam_files import split  # noqa: E402
 
-SETS = ("gltf_CesiumMan", "gltf_Fox", "threejs_RobotExpressive")
+SETS = ("gltf_CesiumMan", "gltf_Fox", "threejs_RobotExpressive", "generated")
+
+
+def load(name, data):
+    """``(vertices, faces, fields, true face labels, true link count)`` of a set."""
+    if name == "generated":
+        from generate import branching_scan
+        scan, truth = branching_scan(4000, n_fields=12, seed=11)
+        return scan.vertices, scan.faces, scan.displacements, truth["face_labels"], truth["n_links"]
+    path = os.path.join(data, name + ".npz")
+    if not os.path.isfile(path):
+        path = os.path.join(ROOT, "tests", "data", name + ".npz")
+    z = np.load(path)
+    return (z["vertices"], z["faces"], z["displacements"], z["gt_face_labels"],
+            int(z["gt_parents"].shape[0]))
+
+
+def meets(case, err, secs, base):
+    """Whether a line meets its bar against the welded fit ``base`` = (error %, seconds): a seam across
+    the body ≤ 1.2 × + 0.01 points in ≤ 1.5 × the time, any other stored mesh ≤ 1.1 × + 0.02 points;
+    the "no weld" line is the fit without the weld, held to the same bar as its mesh."""
+    if case == "welded":
+        return "-"
+    if case.startswith("seam across"):
+        ok = err <= 1.2 * base[0] + 0.01 and secs <= 1.5 * base[1]
+    else:
+        ok = err <= 1.1 * base[0] + 0.02
+    return "yes" if ok else "no"
 
 
 def cases(v, f, d, gt):
@@ -68,12 +97,7 @@ def main(argv=None):
     for name in SETS:
         if a.only and not any(o in name for o in a.only.split(",")):
             continue
-        path = os.path.join(a.data, name + ".npz")
-        if not os.path.isfile(path):
-            path = os.path.join(ROOT, "tests", "data", name + ".npz")
-        z = np.load(path)
-        v, f, d, gt = z["vertices"], z["faces"], z["displacements"], z["gt_face_labels"]
-        links = int(z["gt_parents"].shape[0])
+        v, f, d, gt, links = load(name, a.data)
         base = None
         for case, (sv, sf, sd), weld in cases(v, f, d, gt):
             r, secs = timed(Scan(sv, sf, displacements=sd), links, weld, a.repeats)
@@ -81,15 +105,16 @@ def main(argv=None):
             err = r.articulation_error_percent
             if base is None:
                 base = (err, secs)
-            row = (name.split("_", 1)[1], links, case, len(sv), distinct, err, secs, err / base[0], secs / base[1])
+            row = (name.split("_", 1)[-1], links, case, len(sv), distinct, err, secs, err / base[0], secs / base[1],
+                   meets(case, err, secs, base))
             rows.append(row)
-            print("{:18s} {:3d} {:32s} {:6d} {:6d} {:8.4f}% {:7.2f}s  x{:6.2f} x{:5.2f}".format(*row), flush=True)
+            print("{:18s} {:3d} {:32s} {:6d} {:6d} {:8.4f}% {:7.2f}s  x{:6.2f} x{:5.2f} {}".format(*row), flush=True)
     head = [f"Median of {a.repeats} fit(s) a line, own poses, the true link count, in one process (the machine is "
             f"shared: compare the ratios). Wall time {time.perf_counter() - t_all:.0f} s.", "",
             "| set | links | mesh as stored | stored vertices | distinct | Karni–Gotsman | seconds | error / welded | "
-            "time / welded |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]
-    body = [f"| {s} | {k} | {c} | {n:,} | {u:,} | {e:.4f}% | {t:.2f} | {re:.3f} | {rt:.2f} |"
-            for s, k, c, n, u, e, t, re, rt in rows]
+            "time / welded | meets the bar |", "|---|---:|---|---:|---:|---:|---:|---:|---:|---|"]
+    body = [f"| {s} | {k} | {c} | {n:,} | {u:,} | {e:.4f}% | {t:.2f} | {re:.3f} | {rt:.2f} | {ok} |"
+            for s, k, c, n, u, e, t, re, rt, ok in rows]
     report.write(a.out, "Meshes split at seams against the same mesh welded (`benchmarks/seams.py`)",
                  "\n".join(head + body))
 
