@@ -208,3 +208,52 @@ def test_a_refit_replaces_its_own_rigged_objects_and_a_failed_one_keeps_them(two
     assert parts.parts_of(joined) == rigged and joined.artdef.rig == arm        # the scene as it was
     assert {o.name: getattr(o.data, "name", None) for o in bpy.data.objects} == names and joined.hide_get()
     assert all(o.parent == arm and o.modifiers[0].object == arm for o in rigged)
+
+
+def test_residual_keys_are_cut_per_rigged_object(two_meshes, tmp_path):
+    """Each source mesh's rigged object holds the fit's residual keys on its own vertices: every key
+    is the joined mesh's key on that part's vertex range, and with the armature off each object's
+    key replay is the joined mesh's key replay of its part, at every keyed frame. Three links for
+    two three-bone characters leave a residual: two keys hold it."""
+    blend = tmp_path / "res.blend"
+    _ok(_run(["-m", "artdef_addon", "fit", str(two_meshes), "--links", "3", "--residuals", "2",
+              "--blend", str(blend)], cwd=tmp_path))
+    assert bpy.ops.wm.open_mainfile(filepath=str(blend)) == {'FINISHED'}
+    rigged = sorted((o for o in bpy.data.objects if o.get("artdef_part_of") is not None), key=lambda o: o.name)
+    joined = rigged[0]["artdef_part_of"]
+    parts = list(joined.data["artdef_parts"])
+    ends = np.cumsum([int(s) for s in joined.data["artdef_part_sizes"]])
+    starts = ends - np.diff(np.r_[0, ends])
+
+    def key_co(block):
+        co = np.empty(3 * len(block.data))
+        block.data.foreach_get("co", co)
+        return co.reshape(-1, 3)
+
+    ours = joined.data.shape_keys.key_blocks
+    assert len(ours) >= 3                          # Basis and the two residual keys (and the replay's own)
+    moved_any = 0.0
+    for obj in rigged:
+        k = parts.index(obj["artdef_part_name"])
+        blocks = obj.data.shape_keys.key_blocks
+        assert len(obj.data.vertices) == ends[k] - starts[k]
+        for mine, full in zip(blocks, ours):
+            assert mine.name == full.name and len(mine.data) == len(obj.data.vertices)
+            assert np.abs(key_co(mine) - key_co(full)[starts[k]:ends[k]]).max() < 1e-6
+            moved_any = max(moved_any, float(np.abs(key_co(mine) - key_co(blocks[0])).max()))
+    assert moved_any > 0.0                         # the residual keys are not empty
+    for o in [joined, *rigged]:                    # the key replay alone, in the objects' own space
+        for m in o.modifiers:
+            m.show_viewport = False
+    scene = bpy.context.scene
+    for f in KEYED:
+        scene.frame_set(f)
+        dg = bpy.context.evaluated_depsgraph_get()
+        full = np.array([v.co[:] for v in joined.evaluated_get(dg).to_mesh().vertices])
+        joined.evaluated_get(dg).to_mesh_clear()
+        for obj in rigged:
+            k = parts.index(obj["artdef_part_name"])
+            ev = obj.evaluated_get(dg)
+            mine = np.array([v.co[:] for v in ev.to_mesh().vertices])
+            ev.to_mesh_clear()
+            assert np.abs(mine - full[starts[k]:ends[k]]).max() < 1e-6, (obj.name, f)
