@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 
+from . import linkcheck as _linkcheck
 from . import quality as _quality
 from . import segmenter as _segmenter
 from .blas import single_threaded
@@ -127,6 +128,10 @@ def _fit(scan, links, options, progress, segmenter, resume=None) -> FitResult:
     result.mode = mode
     result.p_max = p_max
     _quality.judge(result, scan.vertices, scan.fields())
+    # the links' self-check (:mod:`linkcheck`): a link holding two bones, two links moving as one
+    result.notes += _linkcheck.notes(_linkcheck.check(
+        scan.vertices, scan.fields(), scan.faces, result.face_labels, result.parents, result.rotations,
+        result.weights if skin == "refined" else None))
     if mode == "pseudo":
         result.pseudo = []
         for k, g in enumerate(seg.groups):

@@ -382,10 +382,11 @@ def make(name: str, **kw) -> Scan:
 
 
 def random_poses(vertices, weights, joints, parents, n_fields: int = 20, max_deg: float = 45.0,
-                 seed: int = 0, root_motion: bool = True, motions: bool = False):
+                 seed: int = 0, root_motion: bool = True, motions: bool = False, min_deg: float = 0.0):
     """Displacements (P, N, 3) of random poses of a rigged mesh by linear blend skinning.
 
-    Every bone rotates about its rest head by a random axis and an angle up to ``max_deg``;
+    Every bone rotates about its rest head by a random axis and an angle drawn uniformly between
+    ``min_deg`` and ``max_deg``;
     roots also translate when ``root_motion``. Used to make fresh tracked scans with a known
     skeleton from the shared rigged models. With ``motions`` the bones' world motions
     ``R`` (P, J, 3, 3), ``t`` (P, J, 3) are returned too (x ↦ R x + t per bone and pose).
@@ -406,7 +407,7 @@ def random_poses(vertices, weights, joints, parents, n_fields: int = 20, max_deg
     for p in range(n_fields):
         R, t = Rs[p], ts[p]
         for j in order:
-            Rj = Rotation.from_rotvec(_random_axis(rng) * np.radians(rng.uniform(0, max_deg))).as_matrix()
+            Rj = Rotation.from_rotvec(_random_axis(rng) * np.radians(rng.uniform(min_deg, max_deg))).as_matrix()
             c = joints[j]
             q = parents[j]
             if q < 0:
