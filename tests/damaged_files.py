@@ -24,14 +24,15 @@ _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 
 def generic(raw: bytes, ext: str, seed: int, other: bytes) -> dict:
     """Damage any file: empty, cut to a half, to its first 24 bytes and by its last tenth, bits
-    flipped (a few and many), random bytes of its size, a line of text, ``other`` (a file of
+    flipped (a few in its header, and one in 20 bytes everywhere), random bytes of its size, a line of text, ``other`` (a file of
     another format) under this extension."""
     rng = random.Random(seed)
     name = f"clip{ext}"
 
-    def flipped(count):
+    def flipped(count, first=16, last=None):
         b = bytearray(raw)
-        for i in rng.sample(range(16, len(b)), min(count, len(b) - 16)):
+        span = range(first, len(b) if last is None else min(last, len(b)))
+        for i in rng.sample(span, min(count, len(span))):
             b[i] ^= 1 << rng.randrange(8)
         return bytes(b)
 
@@ -40,7 +41,10 @@ def generic(raw: bytes, ext: str, seed: int, other: bytes) -> dict:
         "half": raw[: len(raw) // 2],
         "head": raw[:24],
         "tail_cut": raw[: len(raw) - max(len(raw) // 10, 1)],
-        "few_bits": flipped(40),
+        # bytes 8-15, after each format's magic: a glb's length and chunk header, an FBX's magic,
+        # an Alembic (Ogawa) file's root offset, a usdc's version (a few bits flipped anywhere may
+        # only nudge a number, which no reader can tell from the truth)
+        "header_bits": flipped(4, 8, 16),
         "many_bits": flipped(len(raw) // 20),
         "random": bytes(rng.getrandbits(8) for _ in range(len(raw))),
         "text": b"this is not an animation file\n",

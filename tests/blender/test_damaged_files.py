@@ -160,7 +160,7 @@ def test_damaged_files_on_the_command_line(sources, group, tmp_path):
 
 
 #: one case per importer and reader, through the operator in this very Blender
-OPERATOR_CASES = ("abc_half", "abc_few_bits", "glb_nan_morph_targets", "glb_half", "fbx_tail_cut",
+OPERATOR_CASES = ("abc_half", "abc_header_bits", "glb_nan_morph_targets", "glb_half", "fbx_tail_cut",
                   "usda_nan_keys", "usdc_random", "gltf_without_bin", "obj_nan", "ply_cut_short")
 
 
