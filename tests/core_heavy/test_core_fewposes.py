@@ -1,6 +1,5 @@
 """Every true joint from few poses: fresh pose sets of 10 and 16 poses, every joint turned 10-40° about a
 random axis in every pose (``samples.random_poses``), the true link count given."""
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,7 +7,7 @@ import pytest
 import artdef_addon
 from artdef_addon import quality, samples, scan as S
 
-DATA = Path(__file__).parent.parent / "data"
+from fresh_poses import DATA, fit_fresh_poses  # noqa: E402
 
 
 #: RobotExpressive 16 poses seed 3 lost five finger joints (two finger bones in one link three times, the
@@ -21,14 +20,7 @@ DATA = Path(__file__).parent.parent / "data"
 def test_every_joint_from_few_poses(name, n_poses, seed, capsys):
     """ARI ≥ 0.95, every true joint present and within 2 % of the diagonal, and the fit's self-check
     (``linkcheck``) silent on the right rig."""
-    with np.load(DATA / f"{name}.npz", allow_pickle=False) as z:
-        d = {k: z[k] for k in z.files}
-    poses = samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"], d["gt_parents"], n_poses,
-                                 max_deg=40.0, min_deg=10.0, seed=seed)
-    r = artdef_addon.fit(S.Scan(d["vertices"], d["faces"], displacements=poses), len(np.unique(d["gt_face_labels"])))
-    ari = quality.adjusted_rand_index(r.face_labels, d["gt_face_labels"])
-    diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
-    _, err = quality.true_joint_errors(r, d["gt_joints"], d["gt_parents"], d["gt_face_labels"])
+    r, ari, err, diag = fit_fresh_poses(name, n_poses, seed, max_deg=40.0, min_deg=10.0)
     with capsys.disabled():
         print(f"\n{name} {n_poses} poses seed {seed}: ARI {ari:.4f}, joints within 2%: "
               f"{np.sum(err / diag < 0.02)}/{len(err)}, max {100 * np.max(err) / diag:.2f}%")

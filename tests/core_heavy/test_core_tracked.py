@@ -10,6 +10,8 @@ from artdef_addon import files, joints, linkcount, quality, samples, scan as S, 
 import artdef_addon
 from artdef_addon import pipeline as PL, result as RS, segmenter as SG
 
+from fresh_poses import fit_fresh_poses  # noqa: E402
+
 DATA = Path(__file__).parent.parent / "data"
 
 
@@ -373,15 +375,7 @@ def test_never_collapses_on_random_rods():
 
 @pytest.mark.parametrize("name", ["gltf_CesiumMan", "threejs_RobotExpressive"])
 def test_real_rig_fresh_poses(name, capsys):
-    with np.load(DATA / f"{name}.npz", allow_pickle=False) as z:
-        d = {k: z[k] for k in z.files}
-    poses = samples.random_poses(d["vertices"], d["gt_weights"], d["gt_joints"], d["gt_parents"], 20, seed=1)
-    scan = S.Scan(d["vertices"], d["faces"], displacements=poses)
-    L = len(np.unique(d["gt_face_labels"]))
-    r = artdef_addon.fit(scan, L)
-    ari = quality.adjusted_rand_index(r.face_labels, d["gt_face_labels"])
-    diag = np.linalg.norm(np.ptp(d["vertices"], axis=0))
-    _, err = quality.true_joint_errors(r, d["gt_joints"], d["gt_parents"], d["gt_face_labels"])
+    r, ari, err, diag = fit_fresh_poses(name, 20, 1)
     with capsys.disabled():
         print(f"\n{name}: ARI {ari:.3f}, joints within 2% of the diagonal: {np.mean(err / diag < 0.02):.0%} "
               f"of {len(err)}, articulation error {r.articulation_error_percent:.2f}%")
