@@ -1,8 +1,9 @@
 """Blender driver expressions of a Green's-scan rig, as text (no ``bpy``: testable without Blender).
 
-A load empty k's location drives, through κ (paper §7.2), the link helper bones linearly and the
-residual shape keys: a first-order key through the strain-hardening map and a probe-exactness
-bump key per field (:func:`artdef_addon.model.greens_keys`). Blender keeps at most 255 characters of a
+A load empty k's location drives the joints' spring turns (:mod:`artdef_addon.springs`: chained
+rotations of felt loads and lever arms, torques, damped steps), the link helper bones from them, and
+the residual shape keys, one a field, through the strain-hardening map
+(:func:`artdef_addon.model.greens_keys`). Blender keeps at most 255 characters of a
 driver's expression and evaluates "simple expressions" without Python; everything written here is
 one. A linear sum too long for one expression is cut into partial sums (:func:`linear_chunks`),
 each its own driver, added by a SUM driver.
@@ -86,32 +87,45 @@ def shape_value_expression(k, d, probe_load, p_max):
             + sat)
 
 
-def bump_value_expression(k, d, probe_load):
-    """Simple expression of bump shape key value c = 3k+d from load k: (p_kd/p̂)² s⁴ e^(6(1−s)),
-    s = |p_k|/p̂ (:data:`artdef_addon.model.BUMP_POWER` = 6; :func:`artdef_addon.model.greens_key_values`)."""
-    x, y, z = (f"{a}{k}" for a in AXES)
-    v = f"{AXES[d]}{k}"
-    n2 = f"({x}*{x}+{y}*{y}+{z}*{z})"
-    i2 = number(1.0 / probe_load ** 2)
-    power = _model.BUMP_POWER
-    return (f"{v}*{v}*{i2}*" + "*".join([f"{n2}*{i2}"] * ((power - 2) // 2))
-            + f"*exp({number(power)}-{number(power / probe_load)}*sqrt({n2}))")
+#: variable names of a rotation vector and of the vector it turns in :func:`rotate_expression`
+TURN_VARS = ("a", "b", "c")
+VECTOR_VARS = ("x", "y", "z")
 
 
-#: variable names of a load's turn in :func:`felt_expression`
-TURN_VARS = ("wx", "wy", "wz")
-
-
-def felt_expression(k, d) -> str:
-    """Simple expression of component d of load k as its link feels it (:func:`artdef_addon.model.dead_loads`):
-    the load (x<k>, y<k>, z<k>) turned back by the link's turn w (wx, wy, wz), Rodrigues' formula
-    cos θ f − sin θ/θ w × f + (1 − cos θ)/θ² w (w·f), θ = |w| (:func:`artdef_addon.model.rotate_vectors`
-    of −w)."""
-    f = [f"{a}{k}" for a in AXES]
-    w = TURN_VARS
-    t = "sqrt(wx*wx+wy*wy+wz*wz)"
+def rotate_expression(d, sign=1, offset=0.0) -> str:
+    """Simple expression of component d of offset + the vector (x, y, z) turned by the rotation vector
+    ±(a, b, c) (``sign``): Rodrigues' cos θ v ± sin θ/θ w × v + (1 − cos θ)/θ² w (w·v), θ = |w|
+    (:func:`artdef_addon.springs.rotate`)."""
+    w, v = TURN_VARS, VECTOR_VARS
+    n2 = "(a*a+b*b+c*c)"
+    t = f"sqrt({n2})"
     i, j = (d + 1) % 3, (d + 2) % 3
-    cross = f"({w[i]}*{f[j]}-{w[j]}*{f[i]})"
-    dot = f"({w[0]}*{f[0]}+{w[1]}*{f[1]}+{w[2]}*{f[2]})"
-    return (f"cos({t})*{f[d]}-sin({t})/max({t},1e-30)*{cross}"
-            f"+(1-cos({t}))/max(wx*wx+wy*wy+wz*wz,1e-60)*{w[d]}*{dot}")
+    cross = f"({w[i]}*{v[j]}-{w[j]}*{v[i]})"
+    dot = "(a*x+b*y+c*z)"
+    head = f"{number(offset)}+" if offset != 0.0 else ""
+    return (f"{head}cos({t})*{v[d]}{'+' if sign > 0 else '-'}sin({t})/max({t},1e-30)*{cross}"
+            f"+(1-cos({t}))/max({n2},1e-60)*{w[d]}*{dot}")
+
+
+def cross_expression(d) -> str:
+    """Simple expression of component d of the cross product of (x, y, z) and (a, b, c)."""
+    i, j = (d + 1) % 3, (d + 2) % 3
+    v, w = VECTOR_VARS, TURN_VARS
+    return f"{v[i]}*{w[j]}-{v[j]}*{w[i]}"
+
+
+def quaternion_expression(i, frame) -> str:
+    """Simple expression of quaternion component i (w, x, y, z) of the bone-local rotation of the turn
+    (a, b, c) in rest coordinates: cos(θ/2) and sin(θ/2)/θ · (Bᵀ ω)_(i−1), B = ``frame`` (3, 3)."""
+    t = "sqrt(a*a+b*b+c*c)"
+    if i == 0:
+        return f"cos(0.5*{t})"
+    col = [frame[r][i - 1] for r in range(3)]
+    return f"sin(0.5*{t})/max({t},1e-30)*({join(linear_terms(col, TURN_VARS))})"
+
+
+def spring_step_expression(damping, compliance_row) -> str:
+    """Simple expression of a turn component after one damped step: (1 − d) p + d (C_row · (t0, t1, t2)
+    + e), p the previous turn, t the torque in the parent's frame, e the linear remainder E f."""
+    terms = linear_terms(compliance_row, ("t0", "t1", "t2")) + ["e"]
+    return f"{number(1.0 - damping)}*p+{number(damping)}*({join(terms)})"

@@ -196,6 +196,15 @@ def harden(s, p_max):
     return p_max * (1.0 - ((p_max - 1.0) / p_max) ** s)
 
 
+def cross_matrices(a) -> np.ndarray:
+    """[a]× (..., 3, 3) with [a]× b = a × b, for a (..., 3)."""
+    a = np.asarray(a, dtype=np.float64)
+    A = np.zeros(a.shape[:-1] + (3, 3))
+    A[..., 0, 1], A[..., 0, 2], A[..., 1, 2] = -a[..., 2], a[..., 1], -a[..., 0]
+    A[..., 1, 0], A[..., 2, 0], A[..., 2, 1] = a[..., 2], -a[..., 1], a[..., 0]
+    return A
+
+
 def linear_displacement(parents, heads, frames, weights, params, x) -> np.ndarray:
     """The rig's first-order (linearised) motion: d/dε of the skinned positions of ``x`` (N, 3)
     at pose ε·``params`` (..., L, 6), at ε = 0 → (..., N, 3) (paper Eq. 2 linearised;
@@ -206,10 +215,7 @@ def linear_displacement(parents, heads, frames, weights, params, x) -> np.ndarra
     b_l = B_l loc_l − A_l h_l, and a child's world motion is its parent's plus its own:
     u(v) = Σ_l w_l(v) (A_l x(v) + b_l), the A_l and b_l summed along the tree."""
     params = np.asarray(params, dtype=np.float64)
-    w = np.einsum("lij,...lj->...li", frames, params[..., :3])
-    A = np.zeros(w.shape + (3,))
-    A[..., 0, 1], A[..., 0, 2], A[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    A[..., 1, 0], A[..., 2, 0], A[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    A = cross_matrices(np.einsum("lij,...lj->...li", frames, params[..., :3]))
     b = np.einsum("lij,...lj->...li", frames, params[..., 3:]) - np.einsum("...lij,lj->...li", A, heads)
     Aw, bw = np.empty_like(A), np.empty_like(b)
     for l in topological_order(parents):
@@ -219,32 +225,21 @@ def linear_displacement(parents, heads, frames, weights, params, x) -> np.ndarra
     return np.einsum("...nij,nj->...ni", blended_linear(weights, Aw), x) + np.matmul(weights, bw)
 
 
-#: the probe-exactness bump of the residual (:func:`greens_keys`): (s e^(1−s))^BUMP_POWER, 1 at
-#: the probe load (s = 1), below s²/40 for s ≤ 0.1 and below 1e-4 from s = 4 on
-BUMP_POWER = 6
-
-
 def hardening_slope(p_max) -> float:
     """d s̃/ds at s = 0 of :func:`harden` (1 when off): p_max ln(p_max/(p_max − 1)) (docs/method_notes_model.md §10)."""
     return 1.0 if p_max is None else float(p_max * np.log(p_max / (p_max - 1.0)))
 
 
 def greens_keys(result, rest) -> np.ndarray:
-    """The residual shape keys of a Green's rig, (2P, N, 3): P first-order keys, then P bump keys
-    (paper Eq. 6, §7.1; docs/greens.md).
+    """The residual shape keys of a Green's rig, (P, N, 3), one a field (paper Eq. 6, §7.1; docs/greens.md).
 
     The fit's residual δ_c makes the rig reproduce field c at the probe load p̂ (x0 + p̂ Ξ e_c =
     skin(κ_c p̂, x0 + δ_c)). Scaled linearly in the load it would carry the articulation's
     second-order terms at p̂ along linearly, so the rig's tangent at zero load would not be G. The
-    first-order key is measured against the articulation's linearised motion
+    key is measured against the articulation's linearised motion instead
     (:func:`linear_displacement`): Δ_c = p̂ Ξ e_c − J κ_c p̂, which, with the hardening's slope σ
-    at zero (:func:`hardening_slope`) dividing its value, gives the rig G as its derivative at
-    zero load. The bump keys η, on with a weight that is 1 at the probe load and vanishes to sixth
-    order at zero and fast beyond a few probe loads (:func:`greens_key_values`), keep the probe
-    fields exact: the rig poses the loads its links feel (:func:`dead_loads`), g_c at probe load c,
-    so η solves Σ_c' b_c'(g_c) η_c' = δ'_c − Σ_c' a_c'(g_c) Δ_c', δ'_c the rest-space residual that
-    makes field c exact at pose κ g_c and a, b the first-order and bump key values (without the
-    dead-load turn, g_c = p̂ e_c and η_c = δ_c − Δ_c/σ). ``rest`` (N, 3): the rest positions."""
+    at zero (:func:`hardening_slope`) dividing its value (:func:`greens_key_values`), gives the rig
+    G as its derivative at zero load. ``rest`` (N, 3): the rest positions."""
     ph = float(result.probe_load)
     params = np.transpose(np.asarray(result.kappa, dtype=np.float64), (2, 0, 1)) * ph    # (P, L, 6)
     R, t = forward_kinematics(result.parents, result.heads, result.frames, params)
@@ -252,20 +247,7 @@ def greens_keys(result, rest) -> np.ndarray:
     art = np.einsum("pnij,nj->pni", B, rest) + np.matmul(result.weights, t)
     delta = np.asarray(result.residual, dtype=np.float64)
     field = art + np.einsum("pnij,pnj->pni", B, delta) - rest
-    first = field - linear_displacement(result.parents, result.heads, result.frames, result.weights, params, rest)
-    # the rig poses the loads its links feel (dead_loads): at probe load c the residual that makes
-    # field c exact is taken against that pose, and the bump keys solve for it with the key values there
-    P = field.shape[0]
-    felt = np.stack([dead_loads(result, ph * np.eye(P)[c]) for c in range(P)])       # (P, M, 3)
-    fparams = np.stack([pose_params_for_loads(result, g) for g in felt])
-    R, t = forward_kinematics(result.parents, result.heads, result.frames, fparams)
-    B = blended_linear(result.weights, R)
-    wt = np.matmul(result.weights, t)
-    exact = blended_residual(B, rest + field - wt) - rest                               # (P, N, 3)
-    values = np.stack([greens_key_values(result, g) for g in felt])                     # (P, 2P)
-    rhs = exact - np.einsum("pc,cnd->pnd", values[:, :P], first)
-    bump = np.linalg.solve(values[:, P:], rhs.reshape(P, -1)).reshape(rhs.shape)
-    return np.concatenate([first, bump])
+    return field - linear_displacement(result.parents, result.heads, result.frames, result.weights, params, rest)
 
 
 #: load (in probe loads) at which the first-order keys' value is 1/√2 of linear (:func:`greens_key_values`):
@@ -275,63 +257,25 @@ KEY_SATURATION = 6.0
 
 
 def greens_key_values(result, loads) -> np.ndarray:
-    """Values (2P,) of :func:`greens_keys` for loads (M, 3): first-order key 3k+d at
-    h(p_k)_d / (p̂ σ) / √(1 + (s/S)²) (hardening h on the residual only, A-17; S =
-    :data:`KEY_SATURATION`, a change of third order in the load), bump key 3k+d at
-    (p_kd/p̂)² s^(n−2) e^(n(1−s)), s = |p_k|/p̂, n = :data:`BUMP_POWER` (for a load along an axis,
-    (s e^(1−s))^n)."""
+    """Values (P,) of :func:`greens_keys` for the loads (M, 3) the links carrying them feel:
+    key 3k+d at h(p_k)_d / (p̂ σ) / √(1 + (s/S)²) (hardening h on the residual only, A-17; S =
+    :data:`KEY_SATURATION`, a change of third order in the load; s = |p_k|/p̂)."""
     loads = np.asarray(loads, dtype=np.float64).reshape(-1, 3)
     s = np.linalg.norm(loads, axis=1) / result.probe_load
     first = shape_values_for_loads(result, loads) / hardening_slope(result.p_max)
-    first = first / np.repeat(np.sqrt(1.0 + (s / KEY_SATURATION) ** 2), 3)
-    q = loads / result.probe_load
-    bump = q * q * (s ** (BUMP_POWER - 2) * np.exp(BUMP_POWER * (1.0 - s)))[:, None]
-    return np.concatenate([first, bump.reshape(-1)])
+    return first / np.repeat(np.sqrt(1.0 + (s / KEY_SATURATION) ** 2), 3)
 
 
-#: averaged fixed-point steps of :func:`dead_loads`, the drivers' as well (benchmarks/results/greens_posing.md:
-#: three were closer to the truth on the solids than the converged turn)
-DEAD_LOAD_STEPS = 3
-
-
-def load_turn_maps(result) -> np.ndarray:
-    """(M, 3, 3M): row block k maps the flat loads to the linearised world rotation vector of the
-    link that carries load vertex k (its largest skin weight): the sum along the tree of B_j ω_j,
-    ω_j the rotation rows of κ (:func:`linear_displacement`'s A_l, as a vector)."""
-    kappa = np.asarray(result.kappa, dtype=np.float64)                    # (L, 6, 3M)
-    lv = np.asarray(result.load_vertices)
-    carrier = np.argmax(np.asarray(result.weights)[lv], axis=1)
-    own = np.einsum("lij,ljc->lic", result.frames, kappa[:, :3])          # (L, 3, 3M) world vectors
-    world = np.empty_like(own)
-    for l in topological_order(result.parents):
-        p = result.parents[l]
-        world[l] = own[l] + (world[p] if p >= 0 else 0.0)
-    return world[carrier]
-
-
-def rotate_vectors(w, v) -> np.ndarray:
-    """Rodrigues: v (..., 3) turned by the rotation vectors w (..., 3), written as the drivers write it
-    (cos θ v + sin θ/θ w × v + (1 − cos θ)/θ² w (w·v), θ = |w|)."""
-    th = np.linalg.norm(w, axis=-1, keepdims=True)
-    c = np.cos(th)
-    sinc = np.sin(th) / np.maximum(th, 1e-30)
-    vers = (1.0 - c) / np.maximum(th * th, 1e-60)
-    return c * v + sinc * np.cross(w, v) + vers * w * np.sum(w * v, axis=-1, keepdims=True)
-
-
-def dead_loads(result, loads, steps: int | None = None) -> np.ndarray:
-    """The loads (M, 3) as the loaded links feel them. A dead load keeps its world direction while
-    its link turns, so in the link's frame it is f_k turned back by the link's turn w_k: the turn
-    solves w = W g(w), g_k(w) = R(−w_k) f_k (:func:`load_turn_maps`, :func:`rotate_vectors`), by
-    ``steps`` (default :data:`DEAD_LOAD_STEPS`) averaged fixed-point steps w ← ½ (w + W g(w)) from
-    w = 0. g = f + O(|f|²), so the rig keeps G as its tangent at zero load; for a rigid link on a
-    rotational spring under a load across it, w = W g(w) is k θ = F L cos θ."""
-    loads = np.asarray(loads, dtype=np.float64).reshape(-1, 3)
-    W = load_turn_maps(result)
-    w = np.zeros_like(loads)
-    for _ in range(DEAD_LOAD_STEPS if steps is None else steps):
-        w = 0.5 * (w + np.einsum("kic,c->ki", W, rotate_vectors(-w, loads).reshape(-1)))
-    return rotate_vectors(-w, loads)
+def pose_params_for_turns(result, turns, carried) -> np.ndarray:
+    """Pose parameters (L, 6) of the joint turns ω (L, 3) (rotation vectors in rest coordinates,
+    :func:`artdef_addon.springs.spring_turns`): the bone-local rotation Bᵀ Rot(ω) B as Euler
+    angles, and the bone-local location κ's translation rows times the ``carried`` loads (M, 3)."""
+    Rrel = Rotation.from_rotvec(np.asarray(turns, dtype=np.float64)).as_matrix()
+    out = np.zeros((len(result.parents), 6))
+    out[:, :3] = matrix_to_euler(np.einsum("lji,ljk,lkm->lim", result.frames, Rrel, result.frames))
+    out[:, 3:] = np.einsum("ljc,c->lj", np.asarray(result.kappa, dtype=np.float64)[:, 3:],
+                           np.asarray(carried, dtype=np.float64).reshape(-1))
+    return out
 
 
 def pose_params_for_loads(result, loads) -> np.ndarray:
@@ -361,8 +305,9 @@ def deform(result, rest, params, shape_values) -> np.ndarray:
 
 
 def evaluate_loads(result, rest, loads) -> np.ndarray:
-    """Positions of the load-driven model (global or pseudo) for loads (M,3) in force units: joint
-    angles and residual keys of the loads the links feel (:func:`dead_loads`)."""
+    """Positions of the load-driven model (global or pseudo) for loads (M,3) in force units: the
+    joints' spring turns (:mod:`artdef_addon.springs`), and the residual keys of the loads the links
+    carrying them feel."""
     loads = np.asarray(loads, dtype=np.float64).reshape(-1, 3)
     if result.pseudo:
         out = np.array(rest, dtype=np.float64, copy=True)
@@ -372,7 +317,10 @@ def evaluate_loads(result, rest, loads) -> np.ndarray:
         return out
     if result.kappa is None:
         raise ValueError("this fit has no loads (tracked scan): pose it with deform()")
-    felt = dead_loads(result, loads)
-    R, t = forward_kinematics(result.parents, result.heads, result.frames, pose_params_for_loads(result, felt))
-    x = rest + np.einsum("c,cnd->nd", greens_key_values(result, felt), greens_keys(result, rest))
+    from . import springs
+    sp = springs.joint_springs(result, rest)
+    turns, felt = springs.spring_turns(sp, loads)
+    carried = springs.carried_loads(sp, felt)
+    R, t = forward_kinematics(result.parents, result.heads, result.frames, pose_params_for_turns(result, turns, carried))
+    x = rest + np.einsum("c,cnd->nd", greens_key_values(result, carried), greens_keys(result, rest))
     return skin(result.weights, R, t, x)

@@ -14,10 +14,11 @@ RESIDUAL_COLOR_ATTR = "artdef_residual_color"
 #: Prefix of the temporary names of the previous rig's pieces while a new rig is built
 #: (names starting with "." are hidden from most of Blender's lists).
 STASH_PREFIX = ".artdef_prev_"
-#: a Green's rig's posing version, stored on its armature (``RIG_VERSION_PROP``): 3 = joint angles
-#: and residual keys of the loads the links feel (dead loads turned back by their links' turn,
-#: model.dead_loads) with first-order and bump residual keys (model.greens_keys); an older Green's rig
-#: (2: the empties' loads as they are; none: the probe residual scaled linearly) keeps posing as it
-#: did and is told to be refitted (:func:`.rig.stale_greens_rig`)
-RIG_VERSION = 3
+#: a Green's rig's posing version, stored on its armature (``RIG_VERSION_PROP``): 4 = joint turns
+#: from rotational springs balanced against the dead loads' torques (artdef_addon.springs) with one
+#: first-order residual key a field (model.greens_keys); an older Green's rig (3: turns linear in the
+#: loads its links feel, with probe-exactness bump keys; 2: linear in the empties' loads; none: the
+#: probe residual scaled linearly) keeps posing as it did and is told to be refitted
+#: (:func:`.rig.stale_greens_rig`)
+RIG_VERSION = 4
 RIG_VERSION_PROP = "artdef_rig_version"

@@ -49,7 +49,7 @@ from mathutils import Matrix, Vector
 from ..artdef_addon import model as _model
 from . import io, loads, replay
 from ..artdef_addon.drivers import MAX_EXPRESSION, number as _num, join as _join  # noqa: F401
-from ..artdef_addon.drivers import (bump_value_expression, linear_terms as _linear_terms,  # noqa: F401
+from ..artdef_addon.drivers import (linear_terms as _linear_terms,  # noqa: F401
                                     shape_value_expression)
 from .attributes import (_PALETTE, link_colours, remove_link_colours, remove_residual,  # noqa: F401
                          set_active_colour, write_link_colours, write_residual)
@@ -90,7 +90,8 @@ def stale_greens_rig(obj) -> bool:
     :data:`RIG_VERSION`: it still poses as it did (its keys and drivers are in the file), but it
     either scaled its residual keys linearly from the probe load (wrong to first order between and
     below the probe loads) or turns its joints linearly in the load (overshooting a dead load at
-    large loads); the panel says to refit it."""
+    large loads, and summing loads on several links linearly where their torques do not add so);
+    the panel says to refit it."""
     arm = obj.artdef.rig
     if arm is None or arm.type != 'ARMATURE' or arm.data.bones.get(HELPER_FMT.format(0)) is None:
         return False
@@ -359,7 +360,7 @@ def _make_armature(context, obj, result, helpers=False):
         free = result.parents[l] < 0 and not bool(result.grounded[l])
         pb.lock_location = (not free,) * 3
         if helpers:
-            arm.pose.bones[HELPER_FMT.format(l)].rotation_mode = 'XYZ'
+            arm.pose.bones[HELPER_FMT.format(l)].rotation_mode = 'QUATERNION'   # the spring turn's quaternion
     return arm, bone_names
 
 
@@ -418,7 +419,7 @@ def _stage_armature(b):
 
 
 def _stage_shape_keys(b):
-    """3. the residual shape keys (and ``Basis`` if the mesh had none); a Green's rig has two a field."""
+    """3. the residual shape keys (and ``Basis`` if the mesh had none); a Green's rig has one a field."""
     obj, st, mesh = b.obj, b.obj.artdef, b.obj.data
     if mesh.shape_keys is None:
         obj.shape_key_add(name="Basis", from_mix=False)
@@ -429,7 +430,7 @@ def _stage_shape_keys(b):
     io.key_points(keys.reference_key).foreach_get("co", ref_co)
     ref_co = ref_co.reshape(n, 3).astype(np.float64)
     residual = b.residual
-    if b.greens:   # first-order and bump keys (model.greens_keys): the rig's tangent at zero load is G
+    if b.greens:   # first-order keys (model.greens_keys): the rig's tangent at zero load is G
         residual = _model.greens_keys(b.result, ref_co)
     b.n_keys = residual.shape[0]
     width = max(3, len(str(b.n_keys - 1)))

@@ -95,10 +95,10 @@ def check_rig(pkg, obj, links, n_fields):
     assert [b.name for b in arm.data.bones if b.use_deform] == names
     check_load_helpers(pkg, arm, names, greens=result.kappa is not None)
     keys = obj.data.shape_keys.key_blocks
-    # a Green's rig: a first-order and a bump key per field (model.greens_keys); a tracked rig: the
+    # a Green's rig: a first-order key per field (model.greens_keys); a tracked rig: the
     # principal residual shapes the fit kept (residuals.low_rank_basis)
     basis = result.residual_basis
-    wanted = 2 * n_fields if result.kappa is not None else basis.keys if basis is not None else n_fields
+    wanted = n_fields if result.kappa is not None else basis.keys if basis is not None else n_fields
     assert len(keys) == wanted + 1 and keys[0].name == "Basis"
     assert all(k.name.startswith("artdef_field_") for k in keys[1:])
     # bones: heads, tree, rotation mode; world = armature space (identity object transforms)
@@ -141,7 +141,7 @@ def check_load_helpers(pkg, arm, names, greens):
         assert not hbone.collections[0].is_visible
         assert hbone.parent == bone.parent
         np.testing.assert_allclose(np.array(hbone.matrix_local), np.array(bone.matrix_local), atol=1e-6)
-        assert arm.pose.bones[helper].rotation_mode == 'XYZ'
+        assert arm.pose.bones[helper].rotation_mode == 'QUATERNION'
         assert [c.type for c in cons] == ['COPY_TRANSFORMS']
         con = cons[0]
         assert (con.target, con.subtarget) == (arm, helper)

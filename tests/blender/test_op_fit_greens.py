@@ -62,7 +62,7 @@ def test_pseudo_mode_builds_one_load_points_rig(clean_scene, pkg, sample_files):
     assert result.kappa.shape[2] == 3
     loads_objs = [o.name for o in bpy.data.objects if o.name.startswith("artdef_load_")]
     assert loads_objs == ["artdef_load_2"]
-    assert len(obj.data.shape_keys.key_blocks) == 1 + 2 * 3
+    assert len(obj.data.shape_keys.key_blocks) == 1 + 3
     bpy.data.objects["artdef_load_2"].location = LOADS[2]
     x = evaluated_positions(obj)
     want = pkg.model.evaluate_loads(result, rest, LOADS[2:3])
@@ -91,7 +91,7 @@ def test_greens_loads_drive_helper_bones_that_link_bones_follow(clean_scene, pkg
         np.testing.assert_allclose(np.array(pose[name].matrix), np.array(pose[helper].matrix),
                                    atol=1e-5 * size)
     # the former rig: the helpers' driven values on the link bones, no constraint
-    driven_values = [(tuple(pose[h].rotation_euler), tuple(pose[h].location)) for h in helpers]
+    driven_values = [(tuple(pose[h].rotation_quaternion.to_euler('XYZ')), tuple(pose[h].location)) for h in helpers]
     for name, (rotation, location) in zip(names, driven_values):
         pb = arm.pose.bones[name]
         pb.constraints[pkg.rig.LOAD_CONSTRAINT].mute = True
@@ -199,11 +199,15 @@ def test_greens_load_sweep_shows_each_load_case(clean_scene, pkg, sample_files, 
             err = np.abs(x - want).max() / scale
             assert err <= REL_TOL, (c, frame, err)
         if p_max == 0.0:
-            # linear: the peak is the scan's own field (articulation + residual key)
-            scene.frame_set(peak)
+            # linear: on the way up the rig is the scan's own field scaled, to first order: a tenth of
+            # the probe load within 5 % of a tenth of the field, and half that load half as far off
             field = probe * ref.greens[:, c].reshape(-1, 3)
-            x = evaluated_positions(obj)
-            assert np.abs(x - rest - field).max() <= REL_TOL * np.abs(field).max()
+            off = []
+            for frame, sub, amount in ((peak - FPF + 1, 0.0, 0.1), (peak - FPF, 0.5, 0.05)):
+                scene.frame_set(frame, subframe=sub)
+                x = evaluated_positions(obj)
+                off.append(np.abs(x - rest - amount * field).max() / np.abs(amount * field).max())
+            assert off[0] <= 0.05 and off[1] <= 0.6 * off[0], (c, off)
 
 
 def test_pseudo_mode_sweeps_its_one_load_point(clean_scene, pkg, sample_files):
