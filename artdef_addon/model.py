@@ -22,6 +22,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from . import springs
+from .springs import cross_matrices
+
 
 def euler_to_matrix(angles: np.ndarray) -> np.ndarray:
     """Blender 'XYZ' Euler (x, y, z) → rotation matrix R_z(z) R_y(y) R_x(x); any leading shape."""
@@ -196,15 +199,6 @@ def harden(s, p_max):
     return p_max * (1.0 - ((p_max - 1.0) / p_max) ** s)
 
 
-def cross_matrices(a) -> np.ndarray:
-    """[a]× (..., 3, 3) with [a]× b = a × b, for a (..., 3)."""
-    a = np.asarray(a, dtype=np.float64)
-    A = np.zeros(a.shape[:-1] + (3, 3))
-    A[..., 0, 1], A[..., 0, 2], A[..., 1, 2] = -a[..., 2], a[..., 1], -a[..., 0]
-    A[..., 1, 0], A[..., 2, 0], A[..., 2, 1] = a[..., 2], -a[..., 1], a[..., 0]
-    return A
-
-
 def linear_displacement(parents, heads, frames, weights, params, x) -> np.ndarray:
     """The rig's first-order (linearised) motion: d/dε of the skinned positions of ``x`` (N, 3)
     at pose ε·``params`` (..., L, 6), at ε = 0 → (..., N, 3) (paper Eq. 2 linearised;
@@ -317,7 +311,6 @@ def evaluate_loads(result, rest, loads) -> np.ndarray:
         return out
     if result.kappa is None:
         raise ValueError("this fit has no loads (tracked scan): pose it with deform()")
-    from . import springs
     sp = springs.joint_springs(result, rest)
     turns, felt = springs.spring_turns(sp, loads)
     carried = springs.carried_loads(sp, felt)

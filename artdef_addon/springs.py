@@ -30,8 +30,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import cross_matrices, topological_order
-
 #: damped fixed-point steps of :func:`spring_turns`, the drivers' as well, and their damping:
 #: from the linear turn, four steps of ω ← 0.4 ω + 0.6 (C τ(ω) + E f) (benchmarks/results/greens_posing.md)
 SPRING_STEPS = 4
@@ -53,6 +51,29 @@ class Springs:
     turns: np.ndarray        # (L, 3, 3M) Ω: rotation vector of each link per unit flat load, rest coordinates
     compliance: np.ndarray   # (L, 3, 3) C_j
     linear: np.ndarray       # (L, 3, 3M) E = Ω − C T
+
+
+def cross_matrices(a) -> np.ndarray:
+    """[a]× (..., 3, 3) with [a]× b = a × b, for a (..., 3)."""
+    a = np.asarray(a, dtype=np.float64)
+    A = np.zeros(a.shape[:-1] + (3, 3))
+    A[..., 0, 1], A[..., 0, 2], A[..., 1, 2] = -a[..., 2], a[..., 1], -a[..., 0]
+    A[..., 1, 0], A[..., 2, 0], A[..., 2, 1] = a[..., 2], -a[..., 1], a[..., 0]
+    return A
+
+
+def _depth_order(parents) -> list:
+    """Links by depth in the forest ``parents`` (L,): every parent before its children."""
+    parents = np.asarray(parents)
+    depth = np.zeros(len(parents), int)
+    up = parents.copy()
+    for _ in range(len(parents)):
+        live = up >= 0
+        if not live.any():
+            break
+        depth += live
+        up = np.where(live, parents[np.maximum(up, 0)], -1)
+    return [int(l) for l in np.argsort(depth, kind="stable")]
 
 
 def rotate(w, v) -> np.ndarray:
@@ -95,7 +116,7 @@ def joint_springs(result, rest) -> Springs:
     C = np.zeros((L, 3, 3))
     C[ok] = np.einsum("lic,ljc->lij", turns[ok], T[ok]) @ np.linalg.inv(A[ok] + lam[ok, None, None] * np.eye(3))
     linear = turns - C @ T
-    return Springs(parents, topological_order(parents), carrier, down, nxt, segment, turns, C, linear)
+    return Springs(parents, _depth_order(parents), carrier, down, nxt, segment, turns, C, linear)
 
 
 def felt_loads(sp: Springs, w, loads) -> np.ndarray:
