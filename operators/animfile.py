@@ -21,7 +21,7 @@ import numpy as np
 from bpy.props import BoolProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import compat, isolated, menus, parts, rig
+from . import compat, isolated, menus, ops, parts, rig
 from .ops import in_object_mode
 from .sources import FrameRange
 from ..artdef_addon import cli as _cli
@@ -337,6 +337,80 @@ def operator_error(err: RuntimeError) -> str:
     return line
 
 
+def sample_file(op, context, path, objs, left_out, given):
+    """Sample the file's meshes ``objs`` (largest first; ``left_out``: (name, why) of its other
+    meshes) into one scan object over the file's own frames (its clips, or its keys' range;
+    ``given``: frame_start/end/step the user set), as Fields from File does; the scan records its
+    source file and the given frames. Returns the scan object (active), or None after reporting on
+    ``op`` why not (nothing of the sampling left)."""
+    obj = objs[0]
+    which = parts.describe([o.name for o in objs], left_out)
+    name = os.path.basename(path)
+    if len(objs) > 1 or left_out:
+        op.report({'INFO'}, f"{name}: {which}")
+
+    def mark(scan_obj):
+        scan_obj.data["artdef_meshes"] = which
+        scan_obj.data["artdef_source_file"] = name
+        scan_obj.data["artdef_source_path"] = os.path.abspath(path)   # Export Rig must not replace it
+        scan_obj.data["artdef_given_frames"] = dict(given)
+
+    arm, clips = armature_clips(obj)
+    if clips and not given:
+        scan_obj = sample_clips(context, objs, arm, clips)
+        if scan_obj is None:
+            op.report({'ERROR'}, f"{name}: sampling '{obj.name}' failed (see the Info log)")
+            return None
+        mark(scan_obj)
+        for o in context.view_layer.objects:
+            o.select_set(o == scan_obj)
+        context.view_layer.objects.active = scan_obj
+        op.report({'INFO'}, f"'{scan_obj.name}': {', '.join(repr(o.name) for o in objs)} of {name}, "
+                            f"{len(clips)} clips ({', '.join(a.name for a in clips)}) sampled at their own frames")
+        return scan_obj
+    first, last, step = frames_of(objs, context.scene)
+    step = given.get("frame_step", step)
+    start, end = given.get("frame_start", first), given.get("frame_end", last)
+    if given:   # the given range, on its own grid, within the file's frames
+        start += -(-max(first - start, 0) // step) * step
+        end = min(end, last)
+        if start > end:
+            op.report({'ERROR'}, f"{name}: no frame within {given.get('frame_start', first)}.."
+                                 f"{given.get('frame_end', last)} (its frames are {first}..{last})")
+            return None
+    scene = context.scene
+    for _ in range(2):  # the file's own range (start may not pass end: set twice)
+        scene.frame_start, scene.frame_end = start, max(end, start)
+    for o in context.view_layer.objects:
+        o.select_set(False)
+    scan_obj = sample_meshes(context, objs, start, end, step)
+    if scan_obj is None:
+        op.report({'ERROR'}, f"{name}: sampling '{obj.name}' failed (see the Info log)")
+        return None
+    mark(scan_obj)
+    clips = _actions_moving(obj)
+    if clips:  # the exported clip keeps the source clip's name
+        scan_obj.data["artdef_clip"] = clips[0][0].name
+    op.report({'INFO'}, f"'{scan_obj.name}': {', '.join(repr(o.name) for o in objs)} of {name} "
+                        f"sampled over frames {start}-{end} step {step}")
+    return scan_obj
+
+
+def record_file_meshes(scan_obj, fitted, left_out):
+    """The file's meshes on ``scan_obj``'s list (the panel's Meshes of the File): each fitted mesh
+    ticked, every other one unticked with the reason it cannot be fitted (none for a mesh that
+    was only not chosen)."""
+    items = scan_obj.artdef.file_meshes
+    items.clear()
+    for name, why in [(o.name, "") for o in fitted] + list(left_out):
+        item = items.add()
+        item.name = name
+        ob = bpy.data.objects.get(name)
+        item.vertices = len(ob.data.vertices) if ob is not None and ob.type == 'MESH' else 0
+        item.reason = "" if why in ("", parts.NOT_CHOSEN) else why
+        item.fit = not why
+
+
 class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
     """Import an animated file (glTF, FBX, Alembic, USD, or a numbered OBJ/PLY sequence) with Blender's importer and sample its animated mesh over the file's own frames into a tracked scan (Fields from Animation), ready to fit"""
     bl_idname = "artdef.fields_from_file"
@@ -431,68 +505,16 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
             self.report({'ERROR'}, f"{os.path.basename(path)}: no animated mesh in the file"
                                    + (f" ({parts.describe([], left_out).split('; ', 1)[1]})" if left_out else ""))
             return {'CANCELLED'}
-        obj = objs[0]
-        which = parts.describe([o.name for o in objs], left_out)
-        if len(objs) > 1 or left_out:
-            self.report({'INFO'}, f"{os.path.basename(path)}: {which}")
-        arm, clips = armature_clips(obj)
-        given = self.given_frames()
-        if clips and not given:
-            scan_obj = sample_clips(context, objs, arm, clips)
-            if scan_obj is None:
-                self._remove(new)
-                self.report({'ERROR'}, f"{os.path.basename(path)}: sampling '{obj.name}' failed "
-                                       "(see the Info log)")
-                return {'CANCELLED'}
-            scan_obj.data["artdef_meshes"] = which
-            scan_obj.data["artdef_source_file"] = os.path.basename(path)
-            scan_obj.data["artdef_source_path"] = os.path.abspath(path)   # Export Rig must not replace it
-            for o in new:
-                o.hide_set(True)
-                o.hide_render = True
-            for o in context.view_layer.objects:
-                o.select_set(o == scan_obj)
-            context.view_layer.objects.active = scan_obj
-            self.report({'INFO'}, f"'{scan_obj.name}': {', '.join(repr(o.name) for o in objs)} of {os.path.basename(path)}, "
-                                  f"{len(clips)} clips ({', '.join(a.name for a in clips)}) "
-                                  f"sampled at their own frames")
-            return {'FINISHED'}
-        first, last, step = frames_of(objs, context.scene)
-        step = given.get("frame_step", step)
-        start, end = given.get("frame_start", first), given.get("frame_end", last)
-        if given:   # the given range, on its own grid, within the file's frames
-            start += -(-max(first - start, 0) // step) * step
-            end = min(end, last)
-            if start > end:
-                self._remove(new)
-                self.report({'ERROR'}, f"{os.path.basename(path)}: no frame within "
-                                       f"{given.get('frame_start', first)}..{given.get('frame_end', last)}"
-                                       f" (its frames are {first}..{last})")
-                return {'CANCELLED'}
-        scene = context.scene
-        for _ in range(2):  # the file's own range (start may not pass end: set twice)
-            scene.frame_start, scene.frame_end = start, max(end, start)
-        for o in context.view_layer.objects:
-            o.select_set(False)
-        scan_obj = sample_meshes(context, objs, start, end, step)
+        scan_obj = sample_file(self, context, path, objs, left_out, self.given_frames())
         if scan_obj is None:
             self._remove(new)
-            self.report({'ERROR'}, f"{os.path.basename(path)}: sampling '{obj.name}' failed "
-                                   "(see the Info log)")
             return {'CANCELLED'}
-        scan_obj.data["artdef_meshes"] = which
-        scan_obj.data["artdef_source_file"] = os.path.basename(path)
-        scan_obj.data["artdef_source_path"] = os.path.abspath(path)   # Export Rig must not replace it
-        clips = _actions_moving(obj)
-        if clips:  # the exported clip keeps the source clip's name
-            scan_obj.data["artdef_clip"] = clips[0][0].name
-        # The source stays for comparison (and bone names) but out of sight:
+        record_file_meshes(scan_obj, objs, left_out)
+        # The source stays for comparison, bone names and Resample Meshes, but out of sight:
         # the scan copy sits exactly on it.
         for o in new:
             o.hide_set(True)
             o.hide_render = True
-        self.report({'INFO'}, f"'{scan_obj.name}': {', '.join(repr(o.name) for o in objs)} of {os.path.basename(path)} "
-                              f"sampled over frames {start}-{end} step {step}")
         return {'FINISHED'}
 
     @staticmethod
@@ -501,12 +523,85 @@ class ARTDEF_OT_fields_from_file(bpy.types.Operator, ImportHelper, FrameRange):
             bpy.data.objects.remove(o, do_unlink=True)
 
 
+class ARTDEF_OT_resample_meshes(bpy.types.Operator):
+    """Sample the ticked meshes of the animated file into this scan again, the others left out (the file's objects in the scene are read, not the file on disk)"""
+    bl_idname = "artdef.resample_meshes"
+    bl_label = "Resample Meshes"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        obj = ops._active_mesh(context)
+        if obj is None or not len(obj.artdef.file_meshes):
+            cls.poll_message_set("The active object is not a scan sampled from an animated file")
+            return False
+        return in_object_mode(cls, context)
+
+    def _refusal(self, obj, name):
+        """Why the list cannot be sampled now (one line), or None."""
+        items = obj.artdef.file_meshes
+        if rig.has_rig(obj):
+            return f"'{obj.name}' has a rig: clear it (Clear Rig) before choosing other meshes"
+        ticked = [it for it in items if it.fit]
+        if not ticked:
+            return f"{name}: tick at least one mesh to fit"
+        for it in ticked:
+            if it.reason:
+                return f"{name}: mesh '{it.name}' cannot be fitted: {it.reason}"
+            ob = bpy.data.objects.get(it.name)
+            if ob is None or ob.type != 'MESH':
+                return f"{name}: mesh '{it.name}' is no longer in the scene"
+        return None
+
+    def execute(self, context):
+        obj = ops._active_mesh(context)
+        name = obj.data.get("artdef_source_file", "the file")
+        why = self._refusal(obj, name)
+        if why:
+            self.report({'ERROR'}, why)
+            return {'CANCELLED'}
+        items = obj.artdef.file_meshes
+        chosen = [it.name for it in items if it.fit]
+        try:
+            objs, _ = animated_meshes([bpy.data.objects[n] for n in chosen], chosen)
+        except ValueError as err:
+            self.report({'ERROR'}, f"{name}: {err}")
+            return {'CANCELLED'}
+        left_out = [(it.name, it.reason or parts.NOT_CHOSEN) for it in items if not it.fit]
+        listed = [(it.name, it.fit, it.vertices, it.reason) for it in items]
+        given = obj.data.get("artdef_given_frames")
+        given = given.to_dict() if hasattr(given, "to_dict") else {}
+        path = obj.data.get("artdef_source_path", name)
+        before = rig.datablock_snapshot()
+        frames = (context.scene.frame_start, context.scene.frame_end)
+        try:
+            scan_obj = sample_file(self, context, path, objs, left_out, given)
+        except RuntimeError as err:
+            self.report({'ERROR'}, f"{name}: {operator_error(err)}")
+            scan_obj = None
+        if scan_obj is None:           # the scene and the scan as they were
+            rig.remove_new_datablocks(before)
+            for _ in range(2):
+                context.scene.frame_start, context.scene.frame_end = frames
+            context.view_layer.objects.active = obj
+            return {'CANCELLED'}
+        for entry, fit, vertices, reason in listed:      # the same list, as ticked
+            item = scan_obj.artdef.file_meshes.add()
+            item.name, item.fit, item.vertices, item.reason = entry, fit, vertices, reason
+        old_name, old_data = obj.name, obj.data
+        bpy.data.objects.remove(obj, do_unlink=True)
+        if old_data.users == 0:
+            bpy.data.meshes.remove(old_data)
+        scan_obj.name = old_name
+        return {'FINISHED'}
+
+
 def menu_import(self, context):
     self.layout.operator(ARTDEF_OT_fields_from_file.bl_idname,
                          text="ArtDef Animated File as Scan (.glb/.fbx/.abc/.usd)")
 
 
-classes = (ARTDEF_OT_fields_from_file,)
+classes = (ARTDEF_OT_fields_from_file, ARTDEF_OT_resample_meshes)
 
 
 register, unregister = menus.registration(classes, "TOPBAR_MT_file_import", menu_import)

@@ -29,6 +29,10 @@ def _is_custom_shape(obj):
     return False
 
 
+#: why a mesh that could be fitted was left out: the user chose others
+NOT_CHOSEN = "not chosen"
+
+
 def animated_meshes(objects, moving, chosen=()):
     """``(fitted, left_out)`` among ``objects``: the meshes to fit, largest first, and
     ``(name, why)`` of every other mesh (a bone's custom shape, no faces, static, not chosen).
@@ -51,7 +55,7 @@ def animated_meshes(objects, moving, chosen=()):
         elif not moving(obj):
             why = "static"
         elif chosen and obj.name not in chosen:
-            why = "not chosen"
+            why = NOT_CHOSEN
         else:
             fitted.append(obj)
             continue

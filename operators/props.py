@@ -126,6 +126,17 @@ class ARTDEF_PG_name(PropertyGroup):
     """A name recorded in a list (``name`` is built into PropertyGroup)."""
 
 
+class ARTDEF_PG_file_mesh(PropertyGroup):
+    """One mesh of the animated file a scan was sampled from (``name``: its object's name)."""
+    fit: BoolProperty(name="Fit", default=True,
+                      description="Sample this mesh into the scan (Resample Meshes), together with the "
+                                  "other ticked meshes")
+    vertices: IntProperty(name="Vertices", description="Vertices of the mesh as the file stores them")
+    reason: StringProperty(name="Left Out",
+                           description="Why the mesh cannot be fitted (static, no faces, a bone's custom "
+                                       "shape); empty when it can")
+
+
 class ARTDEF_PG_link_stats(PropertyGroup):
     """Fit quality of one link (``name`` is the bone/group name)."""
     link: IntProperty(name="Link")
@@ -159,6 +170,9 @@ class ARTDEF_PG_object(FitSettings, PropertyGroup):
     key_action_previous: PointerProperty(type=bpy.types.Action,
                                          description="Shape-key action before the fit")
     old_parent: PointerProperty(type=bpy.types.Object)
+    # ---- the meshes of the animated file the scan came from (Fields from File) ----
+    file_meshes: CollectionProperty(type=ARTDEF_PG_file_mesh)
+    file_meshes_index: IntProperty(name="Active File Mesh")
     old_parent_type: StringProperty(default='OBJECT')
     old_parent_bone: StringProperty()
     old_parent_inverse: FloatVectorProperty(size=16)
@@ -215,7 +229,7 @@ class ARTDEF_PG_object(FitSettings, PropertyGroup):
                                   description="Show the fit quality of every link")
 
 
-classes = (ARTDEF_PG_name, ARTDEF_PG_link_stats, ARTDEF_PG_object)
+classes = (ARTDEF_PG_name, ARTDEF_PG_file_mesh, ARTDEF_PG_link_stats, ARTDEF_PG_object)
 
 
 def register():

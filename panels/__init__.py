@@ -23,6 +23,21 @@ def _subpanel(layout, idname, title):
     return layout.column()
 
 
+class ARTDEF_UL_file_meshes(bpy.types.UIList):
+    """The meshes of the animated file a scan came from: a Fit tickbox, the name, the vertex count,
+    and why a mesh cannot be fitted."""
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        row = layout.row(align=True)
+        tick = row.row(align=True)
+        tick.enabled = not item.reason
+        tick.prop(item, "fit", text="")
+        row.label(text=item.name, icon='MESH_DATA')
+        row.label(text=f"{item.vertices:,}")
+        if item.reason:
+            row.label(text=item.reason)
+
+
 class ARTDEF_PT_main(bpy.types.Panel):
     bl_label = "ArtDef"
     bl_idname = "ARTDEF_PT_main"
@@ -58,6 +73,11 @@ class ARTDEF_PT_main(bpy.types.Panel):
                 col.label(text=f"Support vertices: {info['support']}")
         else:
             box.label(text="No scan on this mesh", icon='ERROR')
+        if len(obj.artdef.file_meshes):
+            box.label(text=f"Meshes of {mesh.get('artdef_source_file', 'the file')}:")
+            box.template_list("ARTDEF_UL_file_meshes", "", obj.artdef, "file_meshes", obj.artdef,
+                              "file_meshes_index", rows=min(4, len(obj.artdef.file_meshes)))
+            box.operator("artdef.resample_meshes", icon='FILE_REFRESH')
         keys = mesh.shape_keys
         if keys is not None and len(keys.key_blocks) > 1:
             box.operator("artdef.fields_from_shape_keys", icon='SHAPEKEY_DATA')
@@ -261,7 +281,7 @@ def _draw_link_stats(layout, st):
                        f"{_rel(item.rigid_residual, st)}  {item.triangles}")
 
 
-classes = (ARTDEF_PT_main,)
+classes = (ARTDEF_UL_file_meshes, ARTDEF_PT_main)
 
 
 # Blender's own helper: registers in order, unregisters in reverse

@@ -218,6 +218,14 @@ class _Layout:
                 assert key in props, (idname, key)
         return Props()
 
+    def template_list(self, listtype, list_id, data, propname, active_data, active_propname, **kw):
+        """A UIList: recorded, and each of its items drawn by the list's own ``draw_item``."""
+        assert propname in data.bl_rna.properties and active_propname in active_data.bl_rna.properties
+        self.log.append(("list", listtype, propname))
+        for i, item in enumerate(getattr(data, propname)):
+            getattr(bpy.types, listtype).draw_item(None, bpy.context, _Layout(self.log), data, item, 0,
+                                                   active_data, active_propname, i)
+
     def __setattr__(self, key, value):
         assert key in ("scale_y", "use_property_split", "use_property_decorate", "enabled", "alert")
         self.log.append(("set", key, value))
